@@ -1,0 +1,1 @@
+"""Launcher: the table of processes, starting/stopping them, the autocast CLI."""

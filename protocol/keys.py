@@ -1,0 +1,66 @@
+"""Every Zenoh key expression, built by one function each.
+
+``ac/<run>/...``: one run's keys never mix with another's. ``vid`` may be ``"*"`` for
+subscribers that want every vehicle. No other module builds a key string by hand.
+"""
+
+from __future__ import annotations
+
+import re
+
+_RUN_ID = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def _run(run: str) -> str:
+    if not _RUN_ID.match(run):
+        raise ValueError(f"run id {run!r}: use letters, digits, '-' and '_' only")
+    return f"ac/{run}"
+
+
+def _vid(vid: int | str) -> str:
+    if vid == "*" or (isinstance(vid, int) and vid >= 0):
+        return str(vid)
+    raise ValueError(f"vehicle id {vid!r}: a non-negative int or '*'")
+
+
+def world_tick(run: str) -> str:
+    return f"{_run(run)}/world/tick"
+
+
+def world_map(run: str) -> str:
+    return f"{_run(run)}/world/map"
+
+
+def world_outcome(run: str) -> str:
+    return f"{_run(run)}/world/outcome"
+
+
+def mission(run: str, vid: int | str) -> str:
+    return f"{_run(run)}/v/{_vid(vid)}/mission"
+
+
+def scan(run: str, vid: int | str) -> str:
+    return f"{_run(run)}/v/{_vid(vid)}/scan"
+
+
+def cmd(run: str, vid: int | str) -> str:
+    return f"{_run(run)}/v/{_vid(vid)}/cmd"
+
+
+def alive(run: str, vid: int | str) -> str:
+    """Liveliness token key: present while the agent's session is up."""
+    return f"{_run(run)}/alive/v/{_vid(vid)}"
+
+
+def vid_of(key: str) -> int:
+    """The vehicle id in a per-vehicle key (``.../v/<vid>/...``)."""
+    parts = str(key).split("/")
+    try:
+        return int(parts[parts.index("v") + 1])
+    except (ValueError, IndexError):
+        raise ValueError(f"no vehicle id in key {key!r}") from None
+
+
+def everything(run: str) -> str:
+    """All of a run's keys, for the recorder."""
+    return f"{_run(run)}/**"

@@ -1,0 +1,150 @@
+"""Every message that crosses a process boundary, in one place.
+
+Each top-level message carries ``tick`` (decision interval number) and ``t_sim_s``
+(simulation time at the start of that tick). Units are in the field names. Poses are
+in the world frame (x east, y north, yaw counter-clockwise from +x); scans are in the
+sensor frame (origin at the LiDAR, x forward, y left, z up).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from protocol.codec import message, record
+
+# ---------------------------------------------------------------------------- records
+
+
+@record
+class Pose:
+    x_m: float
+    y_m: float
+    yaw_rad: float
+
+
+@record
+class LidarConfig:
+    """A spinning LiDAR: ``beams`` elevations evenly spread over the vertical FOV."""
+
+    beams: int = 64
+    fov_up_deg: float = 2.0
+    fov_down_deg: float = -24.8
+    azimuth_steps: int = 1800
+    range_m: float = 100.0
+    mount_height_m: float = 1.9
+
+    def elevations_rad(self) -> np.ndarray:
+        return np.deg2rad(np.linspace(self.fov_up_deg, self.fov_down_deg, self.beams))
+
+    def azimuths_rad(self) -> np.ndarray:
+        return np.arange(self.azimuth_steps) * (2.0 * np.pi / self.azimuth_steps) - np.pi
+
+
+@record
+class Lane:
+    """A directed lane: its centreline runs in the direction of travel."""
+
+    lane_id: str
+    centerline: np.ndarray  # float64 (n, 2), metres, world frame
+    width_m: float
+    speed_limit_mps: float
+    light_id: int  # traffic light governing the lane's end, -1 if none
+    stop_s_m: float  # arc length of the stop line along the centreline, -1 if none
+
+
+@record
+class TrafficLight:
+    light_id: int
+    x_m: float
+    y_m: float
+
+
+@record
+class LightState:
+    light_id: int
+    state: str  # "red" | "yellow" | "green"
+
+
+@record
+class VehicleSpec:
+    length_m: float
+    width_m: float
+    height_m: float
+    wheelbase_m: float
+    max_accel_mps2: float
+    max_brake_mps2: float
+    max_steer_rad: float
+
+
+# ---------------------------------------------------------------------------- messages
+
+
+@message(1)
+class MapMsg:
+    """The road map, served once to each agent (the paper assumes a shared 3-D map)."""
+
+    tick: int
+    t_sim_s: float
+    name: str
+    lanes: list[Lane]
+    drivable: list[np.ndarray]  # polygons, float64 (n, 2); their union is drivable
+    lights: list[TrafficLight]
+
+
+@message(2)
+class Mission:
+    """What one connected vehicle is and where it is going: its own knowledge only."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    role: str  # "ego" | "occluder" | "background"
+    route: np.ndarray  # float64 (n, 2) waypoints of the intended path, world frame
+    cruise_speed_mps: float
+    spec: VehicleSpec
+    lidar: LidarConfig
+    decision_interval_s: float
+
+
+@message(3)
+class Tick:
+    """Start of decision interval ``tick``; ``live`` lists the connected vehicles in play."""
+
+    tick: int
+    t_sim_s: float
+    live: list[int]
+    lights: list[LightState]
+
+
+@message(4)
+class Scan:
+    """One vehicle's LiDAR sweep for a tick, in its sensor frame, with its exact pose."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    pose: Pose
+    speed_mps: float
+    points: np.ndarray  # float32 (n, 3)
+
+
+@message(5)
+class Command:
+    """An agent's actuation for the interval that starts at ``tick``."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    accel_mps2: float  # negative brakes
+    steer_rad: float  # front-wheel angle, positive turns left
+
+
+@message(6)
+class Outcome:
+    """The judged result of a run; ``result`` is the JSON-ready dict the CLI prints."""
+
+    tick: int
+    t_sim_s: float
+    result: dict[str, Any]

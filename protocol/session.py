@@ -1,0 +1,155 @@
+"""Opening a Zenoh session the way every AutoCast process needs it.
+
+Topology. On one host, one process is the hub: it *listens* on a loopback endpoint
+and runs in Zenoh ``router`` mode; every other process is a ``client`` that
+*connects* to it. Measured here (zenoh 1.10): peers that only connect to a common
+peer do not get each other's data (peer-to-peer routing does not relay), and a full
+peer mesh at 40 processes costs thousands of sockets; clients of one in-process hub
+need no external ``zenohd``. Across hosts, each host's hub also connects to the other
+hubs (``--connect``), which is how Zenoh routers federate.
+
+Defaults that hurt and are switched off: multicast scouting and gossip (explicit
+endpoints instead), shared memory (a 16 MB pool per sender mapped by every
+receiver), and the 500 ms scouting delay on open.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from protocol.codec import MalformedMessage, decode, encode
+
+log = logging.getLogger(__name__)
+
+DEFAULT_HUB = "tcp/127.0.0.1:7447"
+
+
+@dataclass(frozen=True, slots=True)
+class ZenohArgs:
+    """Where a process's session listens and connects; empty lists mean the default."""
+
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+
+
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                       help="be the hub: listen on this endpoint (router mode), e.g. tcp/127.0.0.1:7447")
+    group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help=f"connect to a hub (client mode unless --listen too); default {DEFAULT_HUB}")
+    group.add_argument("--zenoh-config", default=None, metavar="FILE",
+                       help="a Zenoh JSON5 config file; --listen/--connect override its endpoints")
+
+
+def zenoh_args_from(ns: argparse.Namespace) -> ZenohArgs:
+    return ZenohArgs(tuple(ns.listen), tuple(ns.connect), ns.zenoh_config)
+
+
+def zenoh_cli_flags(z: ZenohArgs) -> list[str]:
+    """The command-line flags that reproduce ``z`` in a child process."""
+    flags: list[str] = []
+    for ep in z.listen:
+        flags += ["--listen", ep]
+    for ep in z.connect:
+        flags += ["--connect", ep]
+    if z.config_file:
+        flags += ["--zenoh-config", z.config_file]
+    return flags
+
+
+def make_config(z: ZenohArgs) -> zenoh.Config:
+    conf = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("scouting/delay", "0")
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    listen = list(z.listen)
+    connect = list(z.connect)
+    if not listen and not connect and not z.config_file:
+        connect = [DEFAULT_HUB]
+    if listen:
+        conf.insert_json5("mode", json.dumps("router"))
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    elif connect or not z.config_file:
+        conf.insert_json5("mode", json.dumps("client"))
+        conf.insert_json5("listen/endpoints", "[]")
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        # a client started before its hub keeps retrying instead of failing at once
+        conf.insert_json5("connect/timeout_ms", "-1")
+        conf.insert_json5("connect/exit_on_failure", "false")
+    return conf
+
+
+def open_session(z: ZenohArgs) -> zenoh.Session:
+    """Open a session; the caller must close it (``with`` or ``finally``)."""
+    return zenoh.open(make_config(z))
+
+
+def big_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """A publisher for scans and point clouds: BLOCK, since DROP silently loses them."""
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+def put(session: zenoh.Session, key: str, msg: Any) -> None:
+    session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+@dataclass
+class DropCounter:
+    """Counts payloads that failed to decode, per key, and logs the first of each."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+    def add(self, key: str, err: Exception) -> None:
+        with self._lock:
+            n = self.counts.get(key, 0) + 1
+            self.counts[key] = n
+        if n == 1 or n % 100 == 0:
+            log.warning("dropped malformed payload #%d on %s: %s", n, key, err)
+
+
+def typed_handler(expected: type, on_msg: Callable[[str, Any], None],
+                  drops: DropCounter) -> Callable[[zenoh.Sample], None]:
+    """A subscriber callback that decodes ``expected`` and drops (and counts) the rest.
+
+    Any exception in ``on_msg`` is logged, never propagated into Zenoh's thread.
+    """
+
+    def handler(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = decode(sample.payload.to_bytes(), expected)
+        except MalformedMessage as err:
+            drops.add(key, err)
+            return
+        try:
+            on_msg(key, msg)
+        except Exception:
+            log.exception("handler for %s failed", key)
+
+    return handler
+
+
+def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float) -> Any:
+    """Ask a queryable for one message; raise ``TimeoutError`` if nobody answers."""
+    for reply in session.get(key, timeout=timeout_s):
+        if reply.ok is not None:
+            return decode(reply.ok.payload.to_bytes(), expected)
+    raise TimeoutError(f"no reply on {key} within {timeout_s} s")

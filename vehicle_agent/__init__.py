@@ -1,0 +1,1 @@
+"""One connected vehicle: perception, spatial reasoning, scheduling, fusion, planning, control."""

@@ -1,0 +1,1 @@
+"""World server: sim time, pymunk physics, road map, scenarios, LiDAR, the outcome judge."""

@@ -1,0 +1,322 @@
+"""The paper's three scenarios, as validated parameters plus a builder.
+
+Every scenario has an *ego* (connected, vid 0), an *occluder* truck (connected,
+vid 1), a passive *collider* (no V2V, driven by the world) and background connected
+vehicles (vids 2..N-1) placed on lanes within R/2 of the scene centre. The ego and the
+collider drive routes that cross at a *conflict point*; the collider reaches it
+``delta_s`` seconds after the ego (negative: before) if neither reacts.
+
+Background vehicles are queued (stationary) on approach lanes and parking strips, or
+drive away from the centre on exit lanes; a candidate is kept only if, driven at its
+speed along its lane, it never comes near an actor or another kept vehicle within the
+scenario's duration, so the background adds occlusion and channel load, not crashes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.messages import VehicleSpec
+from world_server.geometry import arc_lengths, first_crossing, point_at
+from world_server.roadmap import RoadMap, intersection, straight_road
+
+SCENARIOS = ("overtaking", "left_turn", "red_light")
+DOMAIN_RADIUS_M = 85.0  # R/2 with R ~ 170 m (urban LTE-Direct), paper section 4.1
+EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
+BACKGROUND_SPEED_MPS = 12.0
+BACKGROUND_SPACING_M = 9.5
+TRUCK_SHARE = 0.15
+
+CAR = VehicleSpec(4.5, 1.8, 1.5, 2.7, 3.0, 7.5, 0.6)
+TRUCK = VehicleSpec(9.0, 2.5, 3.5, 5.5, 2.0, 6.5, 0.6)
+MOUNT_HEIGHT_M = {"car": 1.9, "truck": 3.8}
+
+
+class ScenarioError(ValueError):
+    """A scenario definition that cannot be run; the message names the field."""
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioParams:
+    """The named knobs of a run (paper section 6.2)."""
+
+    scenario: str = "left_turn"
+    vehicles: int = 10  # connected vehicles in range, ego and occluder included
+    collider_speed_kmh: float = 30.0
+    delta_s: float = 0.0  # collider's arrival at the conflict point minus the ego's
+    seed: int = 0
+    duration_s: float = 20.0
+    ego_speed_kmh: float = 0.0  # 0: the scenario's default
+
+    def __post_init__(self) -> None:
+        _check(self.scenario in SCENARIOS, "scenario", self.scenario, f"one of {', '.join(SCENARIOS)}")
+        _check_range("vehicles", self.vehicles, 3, 64, int)
+        _check_range("collider_speed_kmh", self.collider_speed_kmh, 5.0, 80.0, float)
+        _check_range("delta_s", self.delta_s, -5.0, 5.0, float)
+        _check_range("seed", self.seed, 0, 2**31 - 1, int)
+        _check_range("duration_s", self.duration_s, 5.0, 300.0, float)
+        _check_range("ego_speed_kmh", self.ego_speed_kmh, 0.0, 80.0, float)
+
+
+def _check(ok: bool, name: str, value: Any, expect: str) -> None:
+    if not ok:
+        raise ScenarioError(f"{name}: {value!r} is not {expect}")
+
+
+def _check_range(name: str, value: Any, lo: float, hi: float, kind: type) -> None:
+    is_num = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        _check(isinstance(value, int) and not isinstance(value, bool), name, value, "an integer")
+    else:
+        _check(is_num and math.isfinite(value), name, value, "a number")
+    _check(lo <= value <= hi, name, value, f"in [{lo}, {hi}]")
+
+
+def params_from_dict(values: dict[str, Any]) -> ScenarioParams:
+    """Validate a mapping (from TOML or CLI flags) into parameters; errors name the field."""
+    known = {f.name: f for f in dataclasses.fields(ScenarioParams)}
+    for key in values:
+        if key not in known:
+            raise ScenarioError(f"{key}: unknown field (known: {', '.join(known)})")
+    coerced = {}
+    for key, value in values.items():
+        if known[key].type in ("float", float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        coerced[key] = value
+    return ScenarioParams(**coerced)
+
+
+def load_scenario_file(path: str | Path) -> ScenarioParams:
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
+    return params_from_dict(data)
+
+
+@dataclass(slots=True)
+class Actor:
+    """A vehicle at t = 0: its route starts at its position; speed 0 means it waits."""
+
+    vid: int
+    role: str  # ego | occluder | collider | background
+    kind: str  # car | truck
+    route: np.ndarray
+    speed_mps: float
+    connected: bool
+
+    @property
+    def spec(self) -> VehicleSpec:
+        return TRUCK if self.kind == "truck" else CAR
+
+    @property
+    def mount_height_m(self) -> float:
+        return MOUNT_HEIGHT_M[self.kind]
+
+    def start_pose(self) -> tuple[float, float, float]:
+        d = self.route[1] - self.route[0]
+        return float(self.route[0, 0]), float(self.route[0, 1]), math.atan2(d[1], d[0])
+
+
+@dataclass(slots=True)
+class Scenario:
+    params: ScenarioParams
+    roadmap: RoadMap
+    actors: list[Actor]
+    conflict_xy: np.ndarray
+    lights: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def ego(self) -> Actor:
+        return self._role("ego")
+
+    @property
+    def collider(self) -> Actor:
+        return self._role("collider")
+
+    def _role(self, role: str) -> Actor:
+        return next(a for a in self.actors if a.role == role)
+
+    def connected(self) -> list[Actor]:
+        return [a for a in self.actors if a.connected]
+
+    def arrival_s(self, actor: Actor) -> float:
+        """When ``actor`` reaches the conflict point driving its route at its speed."""
+        s = _arc_length_to(actor.route, self.conflict_xy)
+        return s / actor.speed_mps if actor.speed_mps > 0 else math.inf
+
+
+def _arc_length_to(route: np.ndarray, xy: np.ndarray) -> float:
+    """Arc length along ``route`` of its point closest to ``xy`` (exact projection)."""
+    a, ab = route[:-1], np.diff(route, axis=0)
+    seg_len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / seg_len2, 0.0, 1.0)
+    dist = np.linalg.norm(a + t[:, None] * ab - xy, axis=1)
+    i = int(np.argmin(dist))
+    return float(arc_lengths(route)[i] + t[i] * np.sqrt(seg_len2[i]))
+
+
+def _start_before(route: np.ndarray, conflict_xy: np.ndarray, distance_m: float, what: str) -> np.ndarray:
+    """The part of ``route`` that starts ``distance_m`` before its conflict point."""
+    s_conflict = _arc_length_to(route, conflict_xy)
+    s0 = s_conflict - distance_m
+    if s0 < 0:
+        raise ScenarioError(f"{what}: needs {distance_m:.0f} m of approach, the map has {s_conflict:.0f} m")
+    return _trim(route, s0)
+
+
+def _trim(route: np.ndarray, s0: float) -> np.ndarray:
+    cum = arc_lengths(route)
+    start, _ = point_at(route, s0)
+    return np.vstack([start[None], route[cum > s0 + 1e-9]])
+
+
+def build(params: ScenarioParams) -> Scenario:
+    """Place every actor for ``params``; deterministic in ``params.seed``."""
+    builder = {"left_turn": _left_turn, "red_light": _red_light, "overtaking": _overtaking}[params.scenario]
+    scenario = builder(params)
+    _add_background(scenario, np.random.default_rng(params.seed))
+    return scenario
+
+
+def _speeds(p: ScenarioParams, ego_default_kmh: float) -> tuple[float, float]:
+    ego_kmh = p.ego_speed_kmh or ego_default_kmh
+    return ego_kmh / 3.6, p.collider_speed_kmh / 3.6
+
+
+def _crossing_actors(p: ScenarioParams, m: RoadMap, ego_route: np.ndarray, collider_route: np.ndarray,
+                     ego_kmh: float, conflict: np.ndarray | None = None) -> tuple[Actor, Actor, np.ndarray]:
+    v_ego, v_col = _speeds(p, ego_kmh)
+    if conflict is None:
+        hit = first_crossing(ego_route, collider_route)
+        assert hit is not None, "scenario routes must cross"
+        conflict = hit[0]
+    ego_route = _start_before(ego_route, conflict, v_ego * EGO_LEAD_TIME_S, "ego_speed_kmh")
+    collider_time = EGO_LEAD_TIME_S + p.delta_s
+    collider_route = _start_before(collider_route, conflict, v_col * collider_time, "collider_speed_kmh")
+    ego = Actor(0, "ego", "car", ego_route, v_ego, True)
+    collider = Actor(p.vehicles, "collider", "car", collider_route, v_col, False)
+    return ego, collider, conflict
+
+
+def _waiting_truck(route: np.ndarray, front_s: float) -> Actor:
+    """A stationary truck whose front bumper is at arc length ``front_s`` of ``route``."""
+    return Actor(1, "occluder", "truck", _trim(route, front_s - TRUCK.length_m / 2), 0.0, True)
+
+
+def _left_turn(p: ScenarioParams) -> Scenario:
+    """Ego turns left from the south; the opposite left-turning truck hides the oncoming collider."""
+    m = intersection()
+    ego, collider, conflict = _crossing_actors(
+        p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), m.route("N.in.1", "N.in.1>S", "S.out.1"), 22.0)
+    truck_route = m.route("N.in.0", "N.in.0>E", "E.out.0")
+    truck = _waiting_truck(truck_route, m.lanes["N.in.0"].stop_s_m - 0.5)
+    lights = {0: "green", 2: "green", 1: "red", 3: "red"}
+    return Scenario(p, m, [ego, truck, collider], conflict, lights)
+
+
+def _red_light(p: ScenarioParams) -> Scenario:
+    """Ego goes straight north on green; a truck waiting to turn left hides a red-light runner."""
+    m = intersection()
+    ego, collider, conflict = _crossing_actors(
+        p, m, m.route("S.in.1", "S.in.1>N", "N.out.1"), m.route("W.in.1", "W.in.1>E", "E.out.1"), 29.0)
+    truck_route = m.route("S.in.0", "S.in.0>W", "W.out.0")
+    truck = _waiting_truck(truck_route, m.lanes["S.in.0"].stop_s_m - 0.5)
+    lights = {0: "green", 2: "green", 1: "red", 3: "red"}
+    return Scenario(p, m, [ego, truck, collider], conflict, lights)
+
+
+def _overtaking(p: ScenarioParams) -> Scenario:
+    """A truck stopped in the ego's lane; the ego passes in the oncoming lane, where the collider comes."""
+    m = straight_road()
+    y_e, y_w = m.lanes["E"].centerline[0, 1], m.lanes["W"].centerline[0, 1]
+    L = m.lanes["E"].centerline[-1, 0]
+    ego_route = np.array([[-L, y_e], [-16.0, y_e], [-8.0, y_w], [8.0, y_w], [16.0, y_e], [L, y_e]])
+    # the head-on meeting point: the middle of the ego's stretch in the oncoming lane
+    ego, collider, conflict = _crossing_actors(
+        p, m, ego_route, m.lanes["W"].centerline, 22.0, conflict=np.array([0.0, y_w]))
+    truck = _waiting_truck(m.lanes["E"].centerline, L + TRUCK.length_m / 2)
+    return Scenario(p, m, [ego, truck, collider], conflict, {})
+
+
+# ------------------------------------------------------------------------ background
+
+
+def _lane_continuation(m: RoadMap, lane_id: str) -> np.ndarray:
+    """A lane followed straight on through the intersection, if it leads into one."""
+    if ".in." in lane_id:
+        straight = next(k for k in m.lanes if k.startswith(lane_id + ">") and
+                        k.split(">")[1] == {"S": "N", "N": "S", "E": "W", "W": "E"}[lane_id[0]])
+        arm_out = f"{straight.split('>')[1]}.out.{lane_id[-1]}"
+        return m.route(lane_id, straight, arm_out)
+    return m.lanes[lane_id].centerline
+
+
+def _footprint_circles(xy: np.ndarray, yaw: np.ndarray, spec: VehicleSpec) -> np.ndarray:
+    """Three circles along the body cover the box: centres (..., 3, 2)."""
+    off = np.array([-1.0, 0.0, 1.0]) * (spec.length_m / 2 - spec.width_m / 2)
+    d = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
+    return xy[..., None, :] + off[:, None] * d[..., None, :]
+
+
+def _sweep(actor: Actor, times: np.ndarray) -> np.ndarray:
+    xy, yaw = point_at(actor.route, actor.speed_mps * times)
+    return _footprint_circles(xy, yaw, actor.spec)
+
+
+def _clash(a: np.ndarray, ra: float, b: np.ndarray, rb: float, margin_m: float) -> bool:
+    d = np.linalg.norm(a[:, :, None, :] - b[:, None, :, :], axis=-1)
+    return bool((d < ra + rb + margin_m).any())
+
+
+def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
+    p, m = scenario.params, scenario.roadmap
+    n_needed = p.vehicles - sum(a.connected for a in scenario.actors)
+    times = np.arange(0.0, p.duration_s + 1e-9, 0.25)
+    kept = [(a, _sweep(a, times)) for a in scenario.actors]
+    candidates = []
+    for lane_id, lane in m.lanes.items():
+        if ">" in lane_id:
+            continue  # no one waits inside the intersection box
+        cum = arc_lengths(lane.centerline)
+        for s in np.arange(6.0, cum[-1] - 6.0, BACKGROUND_SPACING_M):
+            xy, yaw = point_at(lane.centerline, s)
+            rel = xy - m.center
+            if np.linalg.norm(rel) > DOMAIN_RADIUS_M:
+                continue
+            away = float(rel @ np.array([np.cos(yaw), np.sin(yaw)])) > 0
+            moving = away and not lane_id.startswith("P_")
+            candidates.append((lane_id, float(s), moving))
+    order = rng.permutation(len(candidates))
+    kinds = rng.random(len(candidates)) < TRUCK_SHARE
+    vid = 2
+    for idx in order:
+        if vid - 2 >= n_needed:
+            break
+        lane_id, s, moving = candidates[idx]
+        kind = "truck" if kinds[idx] else "car"
+        route = _trim(_lane_continuation(m, lane_id), s)
+        cand = Actor(vid, "background", kind, route, BACKGROUND_SPEED_MPS if moving else 0.0, True)
+        sweep = _sweep(cand, times)
+        r = cand.spec.width_m / 2
+        if any(_clash(sweep, r, other, o.spec.width_m / 2, 0.8) for o, other in kept):
+            continue
+        kept.append((cand, sweep))
+        scenario.actors.append(cand)
+        vid += 1
+    if vid - 2 < n_needed:
+        raise ScenarioError(f"vehicles: only {vid} connected vehicles fit the {p.scenario} scene, "
+                            f"asked for {p.vehicles}")
+    scenario.actors.sort(key=lambda a: a.vid)
+
+
+__all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Actor", "build", "params_from_dict",
+           "load_scenario_file", "SCENARIOS"]

@@ -137,8 +137,9 @@ def test_box_straddling_the_azimuth_wrap_is_hit_on_both_sides() -> None:
     mine = behind[lbl_b == 0]
     assert np.count_nonzero(mine[:, 1] > 0.01) > 0
     assert np.count_nonzero(mine[:, 1] < -0.01) > 0
+    ahead = front[lbl_f == 0]
     az_b = np.unique(np.rint(np.degrees(np.arctan2(mine[:, 1], mine[:, 0])) * 5) % 1800)
-    az_f = np.unique(np.rint(np.degrees(np.arctan2(front[lbl_f == 0, 1], front[lbl_f == 0, 0])) * 5))
+    az_f = np.unique(np.rint(np.degrees(np.arctan2(ahead[:, 1], ahead[:, 0])) * 5))
     assert len(az_b) == 67
     assert len(az_f) == 67
     assert np.count_nonzero(lbl_b == 0) == np.count_nonzero(lbl_f == 0)

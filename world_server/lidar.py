@@ -125,6 +125,7 @@ def _scan_kernel(
     best_lbl: np.ndarray,
     touched: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """Cast one sweep: nearest hit per ray over the boxes' azimuth spans, then compact."""
     n_az = cos_phi.shape[0]
     n_beams = tan_theta.shape[0]
     step = 2.0 * math.pi / n_az

@@ -91,6 +91,7 @@ class MapMsg:
     lanes: list[Lane]
     drivable: list[np.ndarray]  # polygons, float64 (n, 2); their union is drivable
     lights: list[TrafficLight]
+    buildings: np.ndarray  # float64 (m, 6) static prisms [cx, cy, yaw, length, width, height]
 
 
 @message(2)

@@ -24,6 +24,16 @@ def point_at(poly: np.ndarray, s: float | np.ndarray) -> tuple[np.ndarray, np.nd
     return xy, yaw
 
 
+def project_s(route: np.ndarray, xy: np.ndarray) -> float:
+    """Arc length along ``route`` of its point closest to ``xy`` (exact projection)."""
+    a, ab = route[:-1], np.diff(route, axis=0)
+    seg_len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / seg_len2, 0.0, 1.0)
+    dist = np.linalg.norm(a + t[:, None] * ab - xy, axis=1)
+    i = int(np.argmin(dist))
+    return float(arc_lengths(route)[i] + t[i] * np.sqrt(seg_len2[i]))
+
+
 def resample(poly: np.ndarray, step_m: float) -> np.ndarray:
     """Points every ``step_m`` along the polyline, end point included."""
     total = arc_lengths(poly)[-1]

@@ -18,6 +18,9 @@ from world_server.geometry import arc, join
 LANE_WIDTH_M = 3.5
 ARM_LENGTH_M = 130.0
 BOX_HALF_M = 8.0  # half-size of the intersection box; stop lines sit on its edges
+SIDEWALK_M = 4.0
+BLOCK_M = 60.0  # a city block at each corner, BLOCK_M square
+BUILDING_HEIGHT_M = 12.0
 URBAN_SPEED_MPS = 13.9  # 50 km/h
 
 # arm name -> rotation (radians) of the "approach from the south, drive north" template
@@ -39,6 +42,7 @@ class RoadMap:
     drivable: list[np.ndarray] = field(default_factory=list)
     lights: list[TrafficLight] = field(default_factory=list)
     center: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))  # [cx, cy, yaw, l, w, h]
 
     def add(self, lane_id: str, centerline: np.ndarray, light_id: int = -1, stop_s_m: float = -1.0) -> None:
         self.lanes[lane_id] = Lane(lane_id, np.asarray(centerline, dtype=float), LANE_WIDTH_M,
@@ -49,11 +53,13 @@ class RoadMap:
         return join(*(self.lanes[i].centerline for i in lane_ids))
 
     def to_msg(self) -> MapMsg:
-        return MapMsg(0, 0.0, self.name, list(self.lanes.values()), list(self.drivable), list(self.lights))
+        return MapMsg(0, 0.0, self.name, list(self.lanes.values()), list(self.drivable), list(self.lights),
+                      self.buildings.copy())
 
 
 def intersection() -> RoadMap:
-    """Two two-lane-per-direction roads crossing at the origin, a light per approach."""
+    """Two two-lane-per-direction roads crossing at the origin, a light per approach,
+    and a building on each corner block (they hide the cross street until one is close)."""
     m = RoadMap("intersection")
     b, w, L = BOX_HALF_M, LANE_WIDTH_M, ARM_LENGTH_M
     xs = (w / 2, 3 * w / 2)  # inner, outer lane centre offsets right of the road's centreline
@@ -65,6 +71,9 @@ def intersection() -> RoadMap:
             m.add(f"{arm}.out.{k}", _rot(np.array([[-x, -b], [-x, -b - L]]), angle))
         m.drivable.append(_rot(np.array([[-2 * w, -b - L], [2 * w, -b - L], [2 * w, -b], [-2 * w, -b]]), angle))
     m.drivable.append(np.array([[-b, -b], [b, -b], [b, b], [-b, b]], dtype=float))
+    c = b + SIDEWALK_M + BLOCK_M / 2
+    m.buildings = np.array([[sx * c, sy * c, 0.0, BLOCK_M, BLOCK_M, BUILDING_HEIGHT_M]
+                            for sx in (-1, 1) for sy in (-1, 1)])
     for arm, angle in _ARMS.items():
         for k, x in enumerate(xs):
             straight = _rot(np.array([[x, -b], [x, b]]), angle)

@@ -24,12 +24,15 @@ from typing import Any
 import numpy as np
 
 from protocol.messages import VehicleSpec
-from world_server.geometry import arc_lengths, first_crossing, point_at
+from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
 from world_server.roadmap import RoadMap, intersection, straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")
 DOMAIN_RADIUS_M = 85.0  # R/2 with R ~ 170 m (urban LTE-Direct), paper section 4.1
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
+OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
+LEFT_TURNER_INTO_BOX_M = 4.0  # how far the waiting left-turn truck has pulled past its stop line
+TRUCK_OFFSET_M = 0.4  # the broken-down truck stands this far toward the centreline
 BACKGROUND_SPEED_MPS = 12.0
 BACKGROUND_SPACING_M = 9.5
 TRUCK_SHARE = 0.15
@@ -150,23 +153,13 @@ class Scenario:
 
     def arrival_s(self, actor: Actor) -> float:
         """When ``actor`` reaches the conflict point driving its route at its speed."""
-        s = _arc_length_to(actor.route, self.conflict_xy)
+        s = project_s(actor.route, self.conflict_xy)
         return s / actor.speed_mps if actor.speed_mps > 0 else math.inf
-
-
-def _arc_length_to(route: np.ndarray, xy: np.ndarray) -> float:
-    """Arc length along ``route`` of its point closest to ``xy`` (exact projection)."""
-    a, ab = route[:-1], np.diff(route, axis=0)
-    seg_len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
-    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / seg_len2, 0.0, 1.0)
-    dist = np.linalg.norm(a + t[:, None] * ab - xy, axis=1)
-    i = int(np.argmin(dist))
-    return float(arc_lengths(route)[i] + t[i] * np.sqrt(seg_len2[i]))
 
 
 def _start_before(route: np.ndarray, conflict_xy: np.ndarray, distance_m: float, what: str) -> np.ndarray:
     """The part of ``route`` that starts ``distance_m`` before its conflict point."""
-    s_conflict = _arc_length_to(route, conflict_xy)
+    s_conflict = project_s(route, conflict_xy)
     s0 = s_conflict - distance_m
     if s0 < 0:
         raise ScenarioError(f"{what}: needs {distance_m:.0f} m of approach, the map has {s_conflict:.0f} m")
@@ -193,14 +186,15 @@ def _speeds(p: ScenarioParams, ego_default_kmh: float) -> tuple[float, float]:
 
 
 def _crossing_actors(p: ScenarioParams, m: RoadMap, ego_route: np.ndarray, collider_route: np.ndarray,
-                     ego_kmh: float, conflict: np.ndarray | None = None) -> tuple[Actor, Actor, np.ndarray]:
+                     ego_kmh: float, conflict: np.ndarray | None = None,
+                     lead_s: float = EGO_LEAD_TIME_S) -> tuple[Actor, Actor, np.ndarray]:
     v_ego, v_col = _speeds(p, ego_kmh)
     if conflict is None:
         hit = first_crossing(ego_route, collider_route)
         assert hit is not None, "scenario routes must cross"
         conflict = hit[0]
-    ego_route = _start_before(ego_route, conflict, v_ego * EGO_LEAD_TIME_S, "ego_speed_kmh")
-    collider_time = EGO_LEAD_TIME_S + p.delta_s
+    ego_route = _start_before(ego_route, conflict, v_ego * lead_s, "ego_speed_kmh")
+    collider_time = lead_s + p.delta_s
     collider_route = _start_before(collider_route, conflict, v_col * collider_time, "collider_speed_kmh")
     ego = Actor(0, "ego", "car", ego_route, v_ego, True)
     collider = Actor(p.vehicles, "collider", "car", collider_route, v_col, False)
@@ -218,7 +212,8 @@ def _left_turn(p: ScenarioParams) -> Scenario:
     ego, collider, conflict = _crossing_actors(
         p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), m.route("N.in.1", "N.in.1>S", "S.out.1"), 22.0)
     truck_route = m.route("N.in.0", "N.in.0>E", "E.out.0")
-    truck = _waiting_truck(truck_route, m.lanes["N.in.0"].stop_s_m - 0.5)
+    # it has pulled into the box to wait for a gap, as left-turners do
+    truck = _waiting_truck(truck_route, m.lanes["N.in.0"].stop_s_m + LEFT_TURNER_INTO_BOX_M)
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
     return Scenario(p, m, [ego, truck, collider], conflict, lights)
 
@@ -242,8 +237,10 @@ def _overtaking(p: ScenarioParams) -> Scenario:
     ego_route = np.array([[-L, y_e], [-16.0, y_e], [-8.0, y_w], [8.0, y_w], [16.0, y_e], [L, y_e]])
     # the head-on meeting point: the middle of the ego's stretch in the oncoming lane
     ego, collider, conflict = _crossing_actors(
-        p, m, ego_route, m.lanes["W"].centerline, 22.0, conflict=np.array([0.0, y_w]))
-    truck = _waiting_truck(m.lanes["E"].centerline, L + TRUCK.length_m / 2)
+        p, m, ego_route, m.lanes["W"].centerline, 22.0, conflict=np.array([0.0, y_w]),
+        lead_s=OVERTAKE_LEAD_TIME_S)
+    truck_lane = m.lanes["E"].centerline + np.array([0.0, TRUCK_OFFSET_M])
+    truck = _waiting_truck(truck_lane, L + TRUCK.length_m / 2)
     return Scenario(p, m, [ego, truck, collider], conflict, {})
 
 

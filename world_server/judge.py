@@ -1,0 +1,139 @@
+"""The outcome judge (paper section 6.2): crash, near miss, deadlock or safe passage.
+
+The judge watches the ego and the collider at every physics step and reports, like a
+ScenarioRunner criterion, each metric's actual value with its unit:
+
+- ``crash``: the ego's body touched the collider's (or any vehicle's; ``crash_with``).
+- ``near_miss``: no contact, but the bodies came closer than ``near_miss_m`` (2 m).
+- ``deadlock``: the ego never got past the conflict point: it stood still for
+  ``deadlock_s`` while the collider had not passed either, or the run timed out.
+- ``safe``: the ego passed the conflict point with room to spare.
+
+Reaction time is the time from the ego's first awareness of the collider (a tick in
+which the collider's points were in its view) to the last moment at which braking at
+its maximum deceleration would still have stopped it before the conflict point.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from world_server.geometry import box_corners, project_s, rect_distance
+from world_server.physics import Physics
+from world_server.scenarios import Scenario
+
+NEAR_MISS_M = 2.0
+DEADLOCK_S = 5.0
+STOPPED_MPS = 0.1
+AWARE_MIN_POINTS = 5
+
+
+@dataclass
+class Judge:
+    scenario: Scenario
+    near_miss_m: float = NEAR_MISS_M
+    deadlock_s: float = DEADLOCK_S
+    closest_m: float = math.inf
+    closest_t_s: float = 0.0
+    distances: list[tuple[float, float]] = field(default_factory=list)  # (t_sim_s, m) per tick
+    verdict: str | None = None
+    crash_with: int | None = None
+    t_end_s: float = 0.0
+    _both_stopped_since: float | None = None
+    _ego_aware_t: float | None = None
+    _last_brake_t: float | None = None
+    _visible_ticks: int = 0
+    _ticks: int = 0
+    _collider_points: list[int] = field(default_factory=list)
+    _last_distance_m: float = math.inf
+
+    def __post_init__(self) -> None:
+        sc = self.scenario
+        self.ego_i, self.col_i = sc.ego.vid, sc.collider.vid
+        self._ego_conflict_s = project_s(sc.ego.route, sc.conflict_xy)
+        self._col_conflict_s = project_s(sc.collider.route, sc.conflict_xy)
+
+    def observe_step(self, phys: Physics) -> None:
+        """After every physics step: distance and contacts."""
+        e, c = self.ego_i, self.col_i
+        boxes = box_corners(phys.x[[e, c]], phys.y[[e, c]], phys.yaw[[e, c]],
+                            np.array([phys.specs[e].length_m, phys.specs[c].length_m]),
+                            np.array([phys.specs[e].width_m, phys.specs[c].width_m]))
+        d = rect_distance(boxes[0], boxes[1])
+        self._last_distance_m = d
+        if d < self.closest_m:
+            self.closest_m, self.closest_t_s = d, phys.t_sim_s
+        for contact in phys.contacts:
+            if self.verdict is None and e in (contact.a, contact.b):
+                self.verdict = "crash"
+                self.crash_with = contact.b if contact.a == e else contact.a
+                self.closest_m = 0.0 if self.crash_with == c else self.closest_m
+                self.t_end_s = contact.t_sim_s
+
+    def observe_tick(self, phys: Physics, collider_points_in_ego_view: int) -> None:
+        """Once per decision interval: awareness, braking margin, progress, deadlock."""
+        t = phys.t_sim_s
+        e, c = self.ego_i, self.col_i
+        self._ticks += 1
+        self._collider_points.append(collider_points_in_ego_view)
+        if collider_points_in_ego_view >= AWARE_MIN_POINTS:
+            self._visible_ticks += 1
+            if self._ego_aware_t is None:
+                self._ego_aware_t = t
+        self.distances.append((round(t, 3), round(self._last_distance_m, 3)))
+        ego_s = self._progress(phys, e)
+        col_s = self._progress(phys, c)
+        to_go = self._ego_conflict_s - ego_s
+        if to_go > 0 and to_go - phys.v[e] ** 2 / (2 * phys.max_brake[e]) >= 0:
+            self._last_brake_t = t
+        if self.verdict is not None:
+            return
+        ego_past = ego_s > self._ego_conflict_s + phys.specs[e].length_m
+        col_past = col_s > self._col_conflict_s + phys.specs[c].length_m
+        both_stopped = phys.v[e] < STOPPED_MPS and phys.v[c] < STOPPED_MPS
+        if ego_past and (col_past or phys.v[c] < STOPPED_MPS):
+            self.verdict = "near_miss" if self.closest_m < self.near_miss_m else "safe"
+        elif both_stopped and not ego_past and not col_past:
+            self._both_stopped_since = self._both_stopped_since if self._both_stopped_since is not None else t
+            if t - self._both_stopped_since >= self.deadlock_s:
+                self.verdict = "deadlock"
+        else:
+            self._both_stopped_since = None
+        if self.verdict is not None:
+            self.t_end_s = t
+
+    def _progress(self, phys: Physics, i: int) -> float:
+        actor = self.scenario.ego if i == self.ego_i else self.scenario.collider
+        return project_s(actor.route, np.array([phys.x[i], phys.y[i]]))
+
+    def time_out(self, t_sim_s: float) -> None:
+        if self.verdict is None:
+            self.verdict = "near_miss" if self.closest_m < self.near_miss_m else "deadlock"
+            self.t_end_s = t_sim_s
+
+    def result(self) -> dict:
+        p = self.scenario.params
+        reaction = None
+        if self._ego_aware_t is not None and self._last_brake_t is not None:
+            reaction = round(self._last_brake_t - self._ego_aware_t, 3)
+        pts = np.array(self._collider_points or [0])
+        return {
+            "outcome": self.verdict,
+            "closest_distance_m": round(self.closest_m, 3),
+            "closest_t_s": round(self.closest_t_s, 3),
+            "reaction_time_s": reaction,
+            "collider_visible_share_own": round(self._visible_ticks / max(self._ticks, 1), 4),
+            "collider_points_mean_own": round(float(pts.mean()), 2),
+            "crash_with": self.crash_with,
+            "t_end_s": round(self.t_end_s, 3),
+            "scenario": p.scenario,
+            "vehicles": p.vehicles,
+            "collider_speed_kmh": p.collider_speed_kmh,
+            "delta_s": p.delta_s,
+            "seed": p.seed,
+            "near_miss_m": self.near_miss_m,
+            "distance_series_m": self.distances,
+        }

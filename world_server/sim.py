@@ -1,0 +1,124 @@
+"""The simulation core of the world server, with no I/O: sense, then step.
+
+One decision interval: ``sense`` casts every live vehicle's LiDAR (and the collider's,
+which its built-in driver uses); ``step`` applies the agents' commands, drives the
+collider, and advances physics by the decision interval in fixed physics steps while
+the judge watches. Deterministic for a scenario and seed.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.messages import LidarConfig, LightState, Pose
+from world_server import driver, lidar
+from world_server.judge import Judge
+from world_server.physics import Physics
+from world_server.scenarios import Scenario, ScenarioParams, build
+
+log = logging.getLogger(__name__)
+
+DECISION_INTERVAL_S = 0.1  # T_d
+PHYSICS_DT_S = 0.01
+
+
+@dataclass(frozen=True, slots=True)
+class Sensed:
+    """One vehicle's view for a tick (world-internal: labels are ground truth)."""
+
+    vid: int
+    pose: Pose
+    speed_mps: float
+    points: np.ndarray  # float32 (n, 3), sensor frame
+    labels: np.ndarray  # int32 (n,), box index hit or -1 for ground
+
+
+class Simulation:
+    def __init__(self, params: ScenarioParams, lidar_cfg: LidarConfig | None = None,
+                 decision_interval_s: float = DECISION_INTERVAL_S, physics_dt_s: float = PHYSICS_DT_S) -> None:
+        self.params = params
+        self.scenario: Scenario = build(params)
+        self.lidar_cfg = lidar_cfg or LidarConfig()
+        self.decision_interval_s = decision_interval_s
+        self.physics_dt_s = physics_dt_s
+        self.substeps = int(round(decision_interval_s / physics_dt_s))
+        actors = self.scenario.actors
+        assert [a.vid for a in actors] == list(range(len(actors))), "vids index the physics arrays"
+        self.physics = Physics([a.spec for a in actors], np.array([a.start_pose() for a in actors]),
+                               np.array([a.speed_mps for a in actors]))
+        self.heights_m = np.array([a.spec.height_m for a in actors])
+        self.mount_m = np.array([a.mount_height_m for a in actors])
+        self.judge = Judge(self.scenario)
+        self.tick = 0
+        self._collider_view: Sensed | None = None
+        self._collider_in_ego_view = 0
+
+    @property
+    def t_sim_s(self) -> float:
+        return self.tick * self.decision_interval_s
+
+    @property
+    def connected_vids(self) -> list[int]:
+        return [a.vid for a in self.scenario.connected()]
+
+    def lights(self) -> list[LightState]:
+        return [LightState(i, s) for i, s in sorted(self.scenario.lights.items())]
+
+    def sense(self, vids: Iterable[int]) -> dict[int, Sensed]:
+        """LiDAR scans of ``vids`` plus the collider's (kept for its driver)."""
+        col = self.scenario.collider.vid
+        wanted = sorted(set(vids) | {col})
+        boxes = np.vstack([self.physics.boxes(self.heights_m), self.scenario.roadmap.buildings])
+        poses = self.physics.poses()
+        idx = np.array(wanted)
+        results = lidar.scan_many(boxes, poses[idx], self.mount_m[idx], self.lidar_cfg, idx)
+        views = {}
+        for vid, (points, labels) in zip(wanted, results):
+            x, y, yaw = poses[vid]
+            views[vid] = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), points, labels)
+        self._collider_view = views.pop(col)
+        ego = self.scenario.ego.vid
+        ego_view = views.get(ego)
+        self._collider_in_ego_view = int(np.count_nonzero(ego_view.labels == col)) if ego_view else 0
+        return views
+
+    def step(self, commands: Mapping[int, tuple[float, float]], dead: Iterable[int] = ()) -> None:
+        """Apply commands for this tick and advance physics by one decision interval.
+
+        A connected vehicle without a command (its agent is dead) gets the failsafe:
+        full brake, wheels straight.
+        """
+        phys = self.physics
+        for vid in self.connected_vids:
+            if vid in commands:
+                phys.command(vid, *commands[vid])
+            else:
+                phys.command(vid, -phys.max_brake[vid], 0.0)
+        col = self.scenario.collider
+        if self._collider_view is None:
+            self.sense([])
+        phys.command(col.vid, *driver.passive_command(
+            phys.x[col.vid], phys.y[col.vid], phys.yaw[col.vid], phys.v[col.vid], col.speed_mps, col.route,
+            col.spec, self._collider_view.points, col.mount_height_m))
+        self.judge.observe_tick(phys, self._collider_in_ego_view)
+        for _ in range(self.substeps):
+            phys.step(self.physics_dt_s)
+            self.judge.observe_step(phys)
+        self.tick += 1
+        self._collider_view = None
+
+    @property
+    def done(self) -> bool:
+        if self.judge.verdict is not None:
+            return True
+        if self.t_sim_s >= self.params.duration_s - 1e-9:
+            self.judge.time_out(self.t_sim_s)
+            return True
+        return False
+
+    def result(self) -> dict:
+        return self.judge.result()

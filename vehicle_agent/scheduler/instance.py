@@ -1,0 +1,318 @@
+"""The scheduling problem of one decision interval, and what a schedule is worth.
+
+Notation follows the paper's scheduler section: vehicles C (ids ``vids``), objects
+(i,k) owned by sender i, sizes s_ik, rewards y_(i,k),j = (1 - v) * r, delivery
+probabilities p_ij, N PHY frames of S_f bytes each, history h_(i,k),j.
+
+Every array is canonical: vehicles ascending by id, objects ascending by (owner id,
+object id). Two agents that heard the same control messages therefore build
+bit-identical instances whatever order the messages arrived in, and every scheduler
+breaks ties by this index order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+ObjectKey = tuple[int, int]  # (sender vid i, object id k)
+
+DEFAULT_BANDWIDTH_BPS = 7.2e6  # LTE-Direct QPSK, 10 MHz
+DEFAULT_FRAME_DURATION_S = 0.01  # T_n; the paper allows 10-100 ms
+DEFAULT_DECISION_INTERVAL_S = 0.1  # T_d
+
+
+class OfferLike(Protocol):
+    """What a control message says about one object of its sender."""
+
+    object_id: int
+    size_bytes: int
+    visibility: Mapping[int, float]  # v_(i,k),j per receiver j, 1 = j sees it itself
+    relevance: Mapping[int, float]  # r_(i,k),j per receiver j, in [0, 1]
+
+
+@dataclass(frozen=True, slots=True)
+class ObjectOffer:
+    """One object a sender offers; receivers missing from ``relevance`` get no reward."""
+
+    object_id: int
+    size_bytes: int
+    visibility: Mapping[int, float]
+    relevance: Mapping[int, float]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Instance:
+    """One decision interval's scheduling problem, canonically ordered, read-only."""
+
+    vids: np.ndarray  # int64 (C,), ascending
+    owner: np.ndarray  # int64 (K,), index into vids of the sender i of each object
+    object_id: np.ndarray  # int64 (K,), ascending within each owner
+    size_bytes: np.ndarray  # int64 (K,), s_ik
+    reward: np.ndarray  # float64 (K, C), y_(i,k),j; zero in the owner's own column
+    p_deliver: np.ndarray  # float64 (C, C), p_ij
+    history: np.ndarray  # bool (K, C), h_(i,k),j at the start of the interval
+    frame_bytes: int  # S_f
+    n_frames: int  # N
+    frame_duration_s: float  # T_n
+    bandwidth_bps: float  # B
+
+    def __post_init__(self) -> None:
+        C, K = len(self.vids), len(self.object_id)
+        _check(self.vids.dtype == np.int64 and self.vids.shape == (C,), "vids must be int64 (C,)")
+        _check(bool(np.all(np.diff(self.vids) > 0)), "vids must be strictly ascending")
+        for name in ("owner", "object_id", "size_bytes"):
+            a = getattr(self, name)
+            _check(a.dtype == np.int64 and a.shape == (K,), f"{name} must be int64 (K,)")
+        _check(self.reward.dtype == np.float64 and self.reward.shape == (K, C), "reward must be float64 (K, C)")
+        _check(self.p_deliver.dtype == np.float64 and self.p_deliver.shape == (C, C), "p_deliver must be float64 (C, C)")
+        _check(self.history.dtype == np.bool_ and self.history.shape == (K, C), "history must be bool (K, C)")
+        if K:
+            _check(bool(np.all((self.owner >= 0) & (self.owner < C))), "owner out of range")
+            order = np.lexsort((self.object_id, self.owner))
+            _check(bool(np.all(order == np.arange(K))), "objects must be sorted by (owner, object_id)")
+            same = (np.diff(self.owner) == 0) & (np.diff(self.object_id) == 0)
+            _check(not bool(np.any(same)), "duplicate (owner, object_id)")
+            _check(bool(np.all(self.size_bytes > 0)), "size_bytes must be positive")
+            _check(bool(np.all(self.reward[np.arange(K), self.owner] == 0.0)), "reward to the owner itself must be 0")
+        _check(bool(np.all((self.reward >= 0.0) & (self.reward <= 1.0))), "reward must lie in [0, 1]")
+        _check(bool(np.all((self.p_deliver >= 0.0) & (self.p_deliver <= 1.0))), "p_deliver must lie in [0, 1]")
+        _check(self.frame_bytes >= 0 and self.n_frames >= 0, "frame_bytes and n_frames must be >= 0")
+        for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history"):
+            getattr(self, name).setflags(write=False)
+
+    @property
+    def n_objects(self) -> int:
+        return len(self.object_id)
+
+    @property
+    def n_vehicles(self) -> int:
+        return len(self.vids)
+
+    def keys(self) -> list[ObjectKey]:
+        """(sender vid, object id) of every object, in index order."""
+        return list(zip(self.vids[self.owner].tolist(), self.object_id.tolist()))
+
+    def p_object(self) -> np.ndarray:
+        """float64 (K, C): p_(owner of k), j, the delivery probability of each object to each j."""
+        return self.p_deliver[self.owner]
+
+    def wanted(self) -> np.ndarray:
+        """bool (K,): objects that still carry reward for someone (some y > 0 with h = 0)."""
+        return np.any((self.reward > 0.0) & ~self.history, axis=1)
+
+
+def _check(ok: bool, what: str) -> None:
+    if not ok:
+        raise ValueError(f"invalid scheduling instance: {what}")
+
+
+@dataclass(frozen=True, slots=True)
+class Schedule:
+    """x^n_(i,k): for each of the N frames, the object indices sent in it (ascending)."""
+
+    frames: tuple[tuple[int, ...], ...]
+
+    @staticmethod
+    def from_sets(frames: Iterable[Iterable[int]]) -> Schedule:
+        return Schedule(tuple(tuple(sorted(int(k) for k in f)) for f in frames))
+
+    def matrix(self, n_objects: int) -> np.ndarray:
+        """bool (N, K): x^n_(i,k)."""
+        x = np.zeros((len(self.frames), n_objects), dtype=bool)
+        for n, frame in enumerate(self.frames):
+            x[n, list(frame)] = True
+        return x
+
+    def sent(self) -> frozenset[int]:
+        return frozenset(k for frame in self.frames for k in frame)
+
+    def keyed(self, instance: Instance) -> tuple[tuple[ObjectKey, ...], ...]:
+        """The schedule by (vid, object id), comparable across differently built instances."""
+        keys = instance.keys()
+        return tuple(tuple(keys[k] for k in frame) for frame in self.frames)
+
+
+# ------------------------------------------------------------------------- builders
+
+
+def instance_from_arrays(
+    vids: Iterable[int],
+    owner_vid: Iterable[int],
+    object_id: Iterable[int],
+    size_bytes: Iterable[int],
+    reward: np.ndarray,
+    p_deliver: np.ndarray,
+    *,
+    frame_bytes: int,
+    n_frames: int,
+    history: np.ndarray | None = None,
+    bandwidth_bps: float = DEFAULT_BANDWIDTH_BPS,
+    frame_duration_s: float | None = None,
+) -> Instance:
+    """Canonicalise arrays given in any order: ``reward``/``history`` are (K, C) and
+    ``p_deliver`` (C, C), their vehicle axes in the order of ``vids``."""
+    vids = np.asarray(list(vids), dtype=np.int64)
+    owner_vid = np.asarray(list(owner_vid), dtype=np.int64)
+    object_id = np.asarray(list(object_id), dtype=np.int64)
+    size_bytes = np.asarray(list(size_bytes), dtype=np.int64)
+    reward = np.asarray(reward, dtype=np.float64).reshape(len(object_id), len(vids))
+    p_deliver = np.asarray(p_deliver, dtype=np.float64).reshape(len(vids), len(vids))
+    if history is None:
+        history = np.zeros(reward.shape, dtype=bool)
+    history = np.asarray(history, dtype=bool).reshape(reward.shape)
+    if len(np.unique(vids)) != len(vids):
+        raise ValueError("invalid scheduling instance: duplicate vehicle id")
+    vorder = np.argsort(vids, kind="stable")
+    sorted_vids = vids[vorder]
+    owner = np.searchsorted(sorted_vids, owner_vid)
+    if len(owner) and (np.any(owner >= len(sorted_vids)) or np.any(sorted_vids[np.minimum(owner, len(vids) - 1)] != owner_vid)):
+        raise ValueError("invalid scheduling instance: an object's owner is not among vids")
+    korder = np.lexsort((object_id, owner))
+    reward = reward[korder][:, vorder].copy()
+    history = history[korder][:, vorder].copy()
+    owner = owner[korder]
+    if len(owner):
+        reward[np.arange(len(owner)), owner] = 0.0  # i does not need its own object
+    if frame_duration_s is None:
+        frame_duration_s = frame_bytes * 8.0 / bandwidth_bps
+    return Instance(
+        vids=sorted_vids.copy(),
+        owner=owner.astype(np.int64),
+        object_id=object_id[korder].copy(),
+        size_bytes=size_bytes[korder].copy(),
+        reward=reward,
+        p_deliver=p_deliver[vorder][:, vorder].copy(),
+        history=history,
+        frame_bytes=int(frame_bytes),
+        n_frames=int(n_frames),
+        frame_duration_s=float(frame_duration_s),
+        bandwidth_bps=float(bandwidth_bps),
+    )
+
+
+def make_instance(
+    offers: Mapping[int, Iterable[OfferLike]],
+    p_deliver: Callable[[int, int], float] | Mapping[tuple[int, int], float],
+    *,
+    vids: Iterable[int] = (),
+    history: Mapping[ObjectKey, Iterable[int]] | None = None,
+    bandwidth_bps: float = DEFAULT_BANDWIDTH_BPS,
+    frame_duration_s: float = DEFAULT_FRAME_DURATION_S,
+    decision_interval_s: float = DEFAULT_DECISION_INTERVAL_S,
+) -> Instance:
+    """Build the instance from the control messages heard this interval.
+
+    ``offers`` maps each sender vid to its objects; ``p_deliver`` gives p_ij for a
+    (sender, receiver) pair; ``vids`` adds receivers that offer nothing; ``history``
+    lists, per object, the receivers that already have it. S_f = B * T_n / 8 bytes and
+    N = floor(T_d / T_n) frames.
+    """
+    all_vids = set(int(v) for v in vids) | set(int(i) for i in offers)
+    rows: list[tuple[int, OfferLike]] = []
+    for i, objs in offers.items():
+        for o in objs:
+            rows.append((int(i), o))
+            all_vids |= set(int(j) for j in o.relevance) | set(int(j) for j in o.visibility)
+    vid_list = sorted(all_vids)
+    col = {v: c for c, v in enumerate(vid_list)}
+    reward = np.zeros((len(rows), len(vid_list)))
+    for r, (_, o) in enumerate(rows):
+        for j, rel in o.relevance.items():
+            reward[r, col[int(j)]] = (1.0 - float(o.visibility.get(j, 0.0))) * float(rel)  # y = (1 - v) * r
+    hist = np.zeros(reward.shape, dtype=bool)
+    if history:
+        index = {(i, int(o.object_id)): r for r, (i, o) in enumerate(rows)}
+        for key, receivers in history.items():
+            r = index.get((int(key[0]), int(key[1])))
+            if r is not None:
+                for j in receivers:
+                    if int(j) in col:
+                        hist[r, col[int(j)]] = True
+    get_p = p_deliver if callable(p_deliver) else (lambda i, j: p_deliver[(i, j)])
+    p = np.array([[1.0 if i == j else float(get_p(i, j)) for j in vid_list] for i in vid_list]).reshape(len(vid_list), len(vid_list))
+    return instance_from_arrays(
+        vid_list,
+        [i for i, _ in rows],
+        [int(o.object_id) for _, o in rows],
+        [int(o.size_bytes) for _, o in rows],
+        reward,
+        p,
+        frame_bytes=int(bandwidth_bps * frame_duration_s / 8.0),  # S_f = B * T_n
+        n_frames=int(decision_interval_s / frame_duration_s + 1e-9),  # N = T_d / T_n
+        history=hist,
+        bandwidth_bps=bandwidth_bps,
+        frame_duration_s=frame_duration_s,
+    )
+
+
+def link_probability(distance_m: np.ndarray | float, d50_m: float = 150.0, spread_m: float = 25.0) -> np.ndarray:
+    """p_ij as a function of sender-receiver distance: a logistic packet-reception curve
+    shaped like the 3GPP TR 36.885 highway/urban PRR curves (0.5 at ``d50_m``)."""
+    d = np.asarray(distance_m, dtype=np.float64)
+    return 1.0 / (1.0 + np.exp((d - d50_m) / spread_m))
+
+
+def link_probabilities(positions_m: np.ndarray, **kw: float) -> np.ndarray:
+    """(C, C) p_ij from (C, 2) vehicle positions, with p_ii = 1."""
+    xy = np.asarray(positions_m, dtype=np.float64)
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    p = link_probability(d, **kw)
+    np.fill_diagonal(p, 1.0)
+    return p
+
+
+# ------------------------------------------------------------------------- evaluation
+
+
+def weight_H(reward: np.ndarray, h_expected: np.ndarray) -> np.ndarray:
+    """H^n_(i,k) = sum_j y_(i,k),j * (1 - h^(n-1)_(i,k),j)  (eq. GreedyMetric)."""
+    return np.sum(reward * (1.0 - h_expected), axis=1)
+
+
+def deliver_expected(h_expected: np.ndarray, p_object: np.ndarray, sent: np.ndarray) -> np.ndarray:
+    """h after a frame: each sent object reaches j with probability p_ij, independently."""
+    h = h_expected.copy()
+    h[sent] = 1.0 - (1.0 - h[sent]) * (1.0 - p_object[sent])
+    return h
+
+
+def expected_reward(instance: Instance, schedule: Schedule) -> float:
+    """E[sum_n R^n] (eq. reward_func) of an open-loop schedule: an object sent c times
+    reaches j with probability 1 - (1 - p_ij)^c, independently of when."""
+    counts = np.zeros(instance.n_objects, dtype=np.int64)
+    for frame in schedule.frames:
+        counts[list(frame)] += 1
+    gain = instance.reward * ~instance.history
+    miss = (1.0 - instance.p_object()) ** counts[:, None]
+    return float(np.sum(gain * (1.0 - miss)))
+
+
+def frame_weights(instance: Instance, schedule: Schedule) -> list[float]:
+    """Per frame, sum of H^n over the objects sent in it, H taken at that frame's
+    expected state (the knapsack objective each frame maximises)."""
+    h = instance.history.astype(np.float64)
+    p = instance.p_object()
+    out = []
+    for frame in schedule.frames:
+        sent = np.zeros(instance.n_objects, dtype=bool)
+        sent[list(frame)] = True
+        out.append(float(np.sum(weight_H(instance.reward[sent], h[sent]))))
+        h = deliver_expected(h, p, sent)
+    return out
+
+
+def check_schedule(instance: Instance, schedule: Schedule) -> None:
+    """Raise ValueError if the schedule has more than N frames, an unknown or repeated
+    object in a frame, or a frame whose objects exceed S_f."""
+    if len(schedule.frames) > instance.n_frames:
+        raise ValueError(f"schedule has {len(schedule.frames)} frames, instance has N={instance.n_frames}")
+    for n, frame in enumerate(schedule.frames):
+        if len(set(frame)) != len(frame) or any(k < 0 or k >= instance.n_objects for k in frame):
+            raise ValueError(f"frame {n}: repeated or unknown object index in {frame}")
+        used = int(instance.size_bytes[list(frame)].sum()) if frame else 0
+        if used > instance.frame_bytes:
+            raise ValueError(f"frame {n}: {used} bytes exceed S_f={instance.frame_bytes}")

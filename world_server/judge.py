@@ -48,7 +48,6 @@ class Judge:
     _visible_ticks: int = 0
     _ticks: int = 0
     _collider_points: list[int] = field(default_factory=list)
-    _last_distance_m: float = math.inf
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -56,14 +55,18 @@ class Judge:
         self._ego_conflict_s = project_s(sc.ego.route, sc.conflict_xy)
         self._col_conflict_s = project_s(sc.collider.route, sc.conflict_xy)
 
-    def observe_step(self, phys: Physics) -> None:
-        """After every physics step: distance and contacts."""
+    def _distance(self, phys: Physics) -> float:
+        """Gap between the ego's and the collider's bodies."""
         e, c = self.ego_i, self.col_i
         boxes = box_corners(phys.x[[e, c]], phys.y[[e, c]], phys.yaw[[e, c]],
                             np.array([phys.specs[e].length_m, phys.specs[c].length_m]),
                             np.array([phys.specs[e].width_m, phys.specs[c].width_m]))
-        d = rect_distance(boxes[0], boxes[1])
-        self._last_distance_m = d
+        return rect_distance(boxes[0], boxes[1])
+
+    def observe_step(self, phys: Physics) -> None:
+        """After every physics step: distance and contacts."""
+        e, c = self.ego_i, self.col_i
+        d = self._distance(phys)
         if d < self.closest_m:
             self.closest_m, self.closest_t_s = d, phys.t_sim_s
         for contact in phys.contacts:
@@ -83,7 +86,10 @@ class Judge:
             self._visible_ticks += 1
             if self._ego_aware_t is None:
                 self._ego_aware_t = t
-        self.distances.append((round(t, 3), round(self._last_distance_m, 3)))
+        d = self._distance(phys)
+        if d < self.closest_m:
+            self.closest_m, self.closest_t_s = d, t
+        self.distances.append((round(t, 3), round(d, 3)))
         ego_s = self._progress(phys, e)
         col_s = self._progress(phys, c)
         to_go = self._ego_conflict_s - ego_s

@@ -1,0 +1,42 @@
+"""The ``autocast`` command: one CLI, one subcommand per job.
+
+Each subcommand hands its remaining arguments to the module that owns the job, so
+``autocast world ...`` and ``python -m world_server ...`` are the same thing.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+BENCHES = ("lidar", "scheduler")
+
+USAGE = """usage: autocast <command> [args]
+
+commands:
+  world [flags]          run the world server with lane-following test agents
+                         (python -m world_server --help for the flags)
+  bench NAME [--quick]   print benchmark figures; NAME is one of: {benches}
+""".format(benches=", ".join(BENCHES))
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return 0 if argv else 2
+    cmd, rest = argv[0], argv[1:]
+    if cmd == "world":
+        from world_server.__main__ import main as world_main
+        return world_main(rest)
+    if cmd == "bench":
+        if not rest or rest[0] not in BENCHES:
+            print(f"autocast bench: NAME must be one of {', '.join(BENCHES)}", file=sys.stderr)
+            return 2
+        return importlib.import_module(f"bench.{rest[0]}").main(rest[1:])
+    print(f"autocast: unknown command {cmd!r}\n\n{USAGE}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""Starting, watching and stopping the processes of a run (openpilot manager style).
+
+A run is a table of ``ProcSpec`` rows; the manager only starts what the table says,
+notices a process that died (the watchdog), and stops everything the same way every
+time: SIGINT, a grace period, then SIGKILL. Each child gets its own session (process
+group), so a Ctrl-C in the terminal reaches the launcher, which then stops children in
+order instead of all of them at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class ProcSpec:
+    """One process of a run: ``python -m <module> <args>``."""
+
+    name: str
+    module: str
+    args: tuple[str, ...] = ()
+    critical: bool = False  # the run cannot go on without it
+
+    def argv(self) -> list[str]:
+        return [sys.executable, "-m", self.module, *self.args]
+
+
+class ProcessManager:
+    def __init__(self, log_dir: Path | None = None) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, tuple[ProcSpec, subprocess.Popen]] = {}
+        self._reported: set[str] = set()
+
+    def start(self, spec: ProcSpec) -> subprocess.Popen:
+        if spec.name in self.procs:
+            raise ValueError(f"process {spec.name!r} started twice")
+        out = subprocess.DEVNULL
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            out = open(self.log_dir / f"{spec.name}.log", "wb")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(spec.argv(), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True, env=env)
+        if out is not subprocess.DEVNULL:
+            out.close()  # the child holds its own descriptor
+        self.procs[spec.name] = (spec, proc)
+        log.debug("started %s (pid %d): %s", spec.name, proc.pid, " ".join(spec.argv()))
+        return proc
+
+    def died(self) -> list[tuple[ProcSpec, int]]:
+        """Processes that exited since the last call (watchdog); each reported once."""
+        out = []
+        for name, (spec, proc) in self.procs.items():
+            rc = proc.poll()
+            if rc is not None and name not in self._reported:
+                self._reported.add(name)
+                out.append((spec, rc))
+        return out
+
+    def stop_all(self, grace_s: float = 3.0) -> None:
+        """SIGINT everyone, wait up to ``grace_s``, SIGKILL what is left; reap all."""
+        running = [p for _, p in self.procs.values() if p.poll() is None]
+        for p in running:
+            _signal(p, signal.SIGINT)
+        deadline = time.monotonic() + grace_s
+        for p in running:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("pid %d ignored SIGINT for %.1f s; killing", p.pid, grace_s)
+                _signal(p, signal.SIGKILL)
+                p.wait()
+
+    def __enter__(self) -> "ProcessManager":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()
+
+
+def _signal(proc: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(proc.pid, sig)  # the child leads its own process group
+    except ProcessLookupError:
+        pass

@@ -1,0 +1,108 @@
+"""The world server: ``python -m world_server --scenario left_turn --vehicles 10``.
+
+By default it is the run's Zenoh hub (listening on loopback) and spawns one
+lane-following ``vehicle_agent`` process per connected vehicle; ``--agents external``
+waits for agents started elsewhere (the launcher, another host).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import secrets
+import signal
+import sys
+import time
+
+from deploy.procs import ProcessManager, ProcSpec
+from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, open_session, zenoh_args_from
+from world_server import lidar
+from world_server.scenarios import ScenarioError, load_scenario_file, params_from_dict
+from world_server.server import WorldServer
+from world_server.sim import Simulation
+
+log = logging.getLogger("world_server")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m world_server", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sc = ap.add_argument_group("scenario")
+    sc.add_argument("--scenario", default=None, help="overtaking | left_turn | red_light (default left_turn)")
+    sc.add_argument("--vehicles", type=int, default=None, help="connected vehicles in range, ego included (default 10)")
+    sc.add_argument("--collider-speed", type=float, default=None, metavar="KMH", help="collider base speed (default 30)")
+    sc.add_argument("--delta", type=float, default=None, metavar="SECONDS",
+                    help="collider reaches the conflict point this long after the ego (default 0)")
+    sc.add_argument("--seed", type=int, default=None)
+    sc.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="sim time limit (default 20)")
+    sc.add_argument("--scenario-file", default=None, help="a TOML file of the same fields; flags override it")
+    ap.add_argument("--run-id", default=None, help="key prefix ac/<run>/ (default: generated)")
+    ap.add_argument("--realtime", action="store_true", help="tick on the wall clock instead of lock-step")
+    ap.add_argument("--agents", choices=["spawn", "external"], default="spawn",
+                    help="spawn lane-following agent processes, or wait for external ones")
+    ap.add_argument("--agent-timeout-s", type=float, default=10.0,
+                    help="wall time an agent may take for one tick before it is declared dead")
+    ap.add_argument("--startup-timeout-s", type=float, default=120.0)
+    ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
+    ap.add_argument("--log-level", default="INFO")
+    add_zenoh_args(ap)
+    return ap.parse_args(argv)
+
+
+def scenario_params(args: argparse.Namespace):
+    values = _file_fields(args.scenario_file) if args.scenario_file else {}
+    flags = {"scenario": args.scenario, "vehicles": args.vehicles, "collider_speed_kmh": args.collider_speed,
+             "delta_s": args.delta, "seed": args.seed, "duration_s": args.duration}
+    values.update({k: v for k, v in flags.items() if v is not None})
+    return params_from_dict(values)
+
+
+def _file_fields(path: str) -> dict:
+    params = load_scenario_file(path)
+    return {name: getattr(params, name) for name in params.__dataclass_fields__}
+
+
+def summary(result: dict) -> str:
+    react = result["reaction_time_s"]
+    return (f"outcome: {result['outcome']}  closest distance {result['closest_distance_m']:.2f} m  "
+            f"reaction time {'n/a' if react is None else f'{react:.2f} s'}  "
+            f"collider in ego's own view {100 * result['collider_visible_share_own']:.0f}% of ticks "
+            f"({result['collider_points_mean_own']:.0f} points mean)  "
+            f"[{result['scenario']}, {result['vehicles']} vehicles, seed {result['seed']}, "
+            f"{result['ticks']} ticks in {result['wall_s']:.1f} s wall]")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s world %(levelname)s %(message)s")
+    try:
+        params = scenario_params(args)
+        sim = Simulation(params)
+    except (ScenarioError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run_id = args.run_id or time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
+    z = zenoh_args_from(args)
+    if not z.listen and not z.connect and not z.config_file:
+        z = ZenohArgs(listen=(DEFAULT_HUB,))
+    lidar.warm_up(sim.lidar_cfg)
+    agent_hub = list(z.listen[:1] or z.connect[:1])
+    with open_session(z) as session, ProcessManager() as procs:
+        server = WorldServer(sim, session, run_id, realtime=args.realtime,
+                             agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s)
+        signal.signal(signal.SIGINT, lambda *_: server.stop())
+        signal.signal(signal.SIGTERM, lambda *_: server.stop())
+        if args.agents == "spawn":
+            for vid in sim.connected_vids:
+                flags = ["--run-id", run_id, "--vid", str(vid)] + [f for ep in agent_hub for f in ("--connect", ep)]
+                procs.start(ProcSpec(f"agent{vid}", "vehicle_agent", tuple(flags)))
+        result = server.serve()
+    print(summary(result))
+    if args.json:
+        print(json.dumps(result, allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""The world server's I/O: serve the map and missions, publish ticks and scans, collect
+commands, step the simulation, publish the judged outcome.
+
+Liveness (openpilot SubMaster style): every agent holds a Zenoh liveliness token while
+its session is up. A token that disappears (the process died or closed) marks the agent
+dead at once; an agent whose command for a tick does not arrive within
+``agent_timeout_s`` of wall time is marked dead too. A dead agent's vehicle gets the
+failsafe (full brake) and the run goes on without it.
+
+Modes: lock-step (default) waits, per tick, for every live agent's command: runs are
+deterministic for a seed. Real-time (``realtime=True``) ticks on the wall clock every
+decision interval; an agent whose command is late keeps its last one.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+
+from protocol import keys
+from protocol.codec import encode
+from protocol.messages import Command, Mission, Outcome, Scan, Tick
+from protocol.session import DropCounter, big_publisher, typed_handler
+from world_server.sim import Simulation
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServerStats:
+    ticks: int = 0
+    dead: dict[int, str] = field(default_factory=dict)  # vid -> why
+    late_commands: int = 0
+    wall_s: float = 0.0
+
+
+class WorldServer:
+    def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
+                 agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0) -> None:
+        self.sim = sim
+        self.session = session
+        self.run_id = run_id
+        self.realtime = realtime
+        self.agent_timeout_s = agent_timeout_s
+        self.startup_timeout_s = startup_timeout_s
+        self.drops = DropCounter()
+        self.stats = ServerStats()
+        self._cv = threading.Condition()
+        self._tokens: set[int] = set()
+        self._cmds: dict[int, Command] = {}  # latest command per vid
+        self._expected = set(sim.connected_vids)
+        self._live = set(self._expected)
+        self._stopping = threading.Event()
+        self._entities: list = []
+
+    # ------------------------------------------------------------------ wiring
+
+    def _declare(self) -> None:
+        s, run = self.session, self.run_id
+        map_bytes = encode(self.sim.scenario.roadmap.to_msg())
+        missions = {a.vid: encode(self._mission(a)) for a in self.sim.scenario.connected()}
+
+        def on_map(query: zenoh.Query) -> None:
+            query.reply(keys.world_map(run), map_bytes)
+
+        def on_mission(query: zenoh.Query) -> None:
+            try:
+                vid = keys.vid_of(str(query.key_expr))
+            except ValueError:
+                return
+            if vid in missions:
+                query.reply(keys.mission(run, vid), missions[vid])
+
+        self._entities += [
+            s.declare_queryable(keys.world_map(run), on_map),
+            s.declare_queryable(keys.mission(run, "*"), on_mission),
+            s.declare_subscriber(keys.cmd(run, "*"), typed_handler(Command, self._on_cmd, self.drops)),
+            s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
+        ]
+        self._tick_pub = s.declare_publisher(keys.world_tick(run))
+        self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
+        self._entities += [self._tick_pub, *self._scan_pubs.values()]
+
+    def _mission(self, actor) -> Mission:
+        return Mission(0, 0.0, actor.vid, actor.role, actor.route, actor.speed_mps, actor.spec,
+                       self.sim.lidar_cfg, self.sim.decision_interval_s)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        try:
+            vid = keys.vid_of(str(sample.key_expr))
+        except ValueError:
+            return
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._tokens.add(vid)
+            else:
+                self._tokens.discard(vid)
+                if vid in self._live:
+                    self._mark_dead(vid, "liveliness token dropped")
+            self._cv.notify_all()
+
+    def _on_cmd(self, key: str, cmd: Command) -> None:
+        if keys.vid_of(key) != cmd.vid:
+            self.drops.add(key, ValueError(f"command for vid {cmd.vid} on another vehicle's key"))
+            return
+        with self._cv:
+            prev = self._cmds.get(cmd.vid)
+            if prev is None or cmd.tick >= prev.tick:
+                self._cmds[cmd.vid] = cmd
+            self._cv.notify_all()
+
+    def _mark_dead(self, vid: int, why: str) -> None:
+        """Caller holds ``_cv``."""
+        self._live.discard(vid)
+        self.stats.dead[vid] = why
+        log.warning("agent %d is dead (%s); its vehicle brakes to a stop", vid, why)
+
+    # ------------------------------------------------------------------ running
+
+    def stop(self) -> None:
+        self._stopping.set()
+        with self._cv:
+            self._cv.notify_all()
+
+    def serve(self) -> dict:
+        """Run to the judged outcome; returns the result dict (also published)."""
+        self._declare()
+        try:
+            self._wait_for_agents()
+            t0 = time.monotonic()
+            while not self.sim.done and not self._stopping.is_set():
+                self._one_tick(t0)
+            self.stats.wall_s = time.monotonic() - t0
+            if not self.sim.done:  # stopped from outside: judge what happened so far
+                self.sim.judge.time_out(self.sim.t_sim_s)
+            result = self._result()
+            self.session.put(keys.world_outcome(self.run_id), encode(Outcome(self.sim.tick, self.sim.t_sim_s, result)),
+                             congestion_control=zenoh.CongestionControl.BLOCK)
+            return result
+        finally:
+            for entity in self._entities:
+                entity.undeclare()
+
+    def _wait_for_agents(self) -> None:
+        deadline = time.monotonic() + self.startup_timeout_s
+        with self._cv:
+            while not self._expected <= self._tokens and not self._stopping.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cv.wait(min(left, 0.5))
+            for vid in sorted(self._expected - self._tokens):
+                self._mark_dead(vid, f"never came up within {self.startup_timeout_s:.0f} s")
+        log.info("%d of %d agents up; starting", len(self._live), len(self._expected))
+
+    def _one_tick(self, t0: float) -> None:
+        sim = self.sim
+        k = sim.tick
+        with self._cv:
+            live = sorted(self._live)
+        views = sim.sense(live)
+        self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
+        for vid in live:
+            v = views[vid]
+            self._scan_pubs[vid].put(encode(Scan(k, sim.t_sim_s, vid, v.pose, v.speed_mps, v.points)))
+        if self.realtime:
+            commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
+        else:
+            commands = self._collect_lockstep(k)
+        sim.step(commands)
+        self.stats.ticks += 1
+
+    def _collect_lockstep(self, k: int) -> dict[int, tuple[float, float]]:
+        deadline = time.monotonic() + self.agent_timeout_s
+        with self._cv:
+            while not self._stopping.is_set():
+                waiting = [v for v in self._live if self._cmds.get(v) is None or self._cmds[v].tick < k]
+                if not waiting:
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    for vid in waiting:
+                        self._mark_dead(vid, f"no command for tick {k} within {self.agent_timeout_s:.1f} s")
+                    break
+                self._cv.wait(left)
+            return {v: (self._cmds[v].accel_mps2, self._cmds[v].steer_rad) for v in self._live if v in self._cmds}
+
+    def _collect_realtime(self, tick_end: float) -> dict[int, tuple[float, float]]:
+        k = self.sim.tick
+        with self._cv:
+            while not self._stopping.is_set():
+                left = tick_end - time.monotonic()
+                if left <= 0:
+                    break
+                self._cv.wait(left)
+            for vid in list(self._live):
+                cmd = self._cmds.get(vid)
+                if cmd is None or cmd.tick < k:
+                    self.stats.late_commands += 1
+                last_tick = cmd.tick if cmd is not None else -1
+                if (k - last_tick) * self.sim.decision_interval_s > self.agent_timeout_s:
+                    self._mark_dead(vid, f"no command for {self.agent_timeout_s:.1f} s")
+            return {v: (self._cmds[v].accel_mps2, self._cmds[v].steer_rad) for v in self._live if v in self._cmds}
+
+    def _result(self) -> dict:
+        result = self.sim.result()
+        result.update({
+            "run_id": self.run_id,
+            "mode": "realtime" if self.realtime else "lockstep",
+            "ticks": self.stats.ticks,
+            "wall_s": round(self.stats.wall_s, 3),
+            "realtime_factor": round(self.sim.t_sim_s / self.stats.wall_s, 3) if self.stats.wall_s > 0 else None,
+            "dead_agents": {str(k): v for k, v in sorted(self.stats.dead.items())},
+            "malformed_dropped": self.drops.total,
+            "late_commands": self.stats.late_commands,
+        })
+        return result

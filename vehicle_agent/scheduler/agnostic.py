@@ -11,8 +11,10 @@ from vehicle_agent.scheduler.state import SchedulerState
 
 def round_robin_order(instance: Instance, cursor: tuple[int, int] | None) -> np.ndarray:
     """Object indices in (vid, object id) order, rotated to start just after ``cursor``."""
-    keys = instance.keys()
-    start = 0 if cursor is None else sum(1 for key in keys if key <= tuple(cursor))
+    start = 0
+    if cursor is not None:
+        v, o = instance.vids[instance.owner], instance.object_id
+        start = int(np.count_nonzero((v < cursor[0]) | ((v == cursor[0]) & (o <= cursor[1]))))
     return np.roll(np.arange(instance.n_objects), -start)
 
 

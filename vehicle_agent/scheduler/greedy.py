@@ -1,4 +1,11 @@
-"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation."""
+"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation.
+
+Starvation: the paper replaces H/s by H / (s / var_s) * m / var_m. var_s is common to
+every object of an interval, so it scales all keys alike and is dropped; m / var_m
+alone would give every never-skipped object (m = 0) a key of 0 and divide by zero when
+all m are equal. We use boost * H/s with boost = 1 + m / max(var_m, 1), var_m the
+variance of m over the candidates: plain H/s for m = 0, growing with m.
+"""
 
 from __future__ import annotations
 
@@ -10,60 +17,79 @@ from vehicle_agent.scheduler.registry import register
 from vehicle_agent.scheduler.state import SchedulerState
 
 
-def starvation_boost(starvation: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """Factor on H/s for starved objects: 1 + m / max(var_m, 1), var_m over the candidates.
-
-    The paper's key is H / (s / var_s) * m / var_m. var_s is common to every object of
-    an interval, so it scales all keys alike and is dropped; m / var_m alone would give
-    every never-skipped object (m = 0) a key of 0 and divide by zero when all m are
-    equal, hence 1 + m / max(var_m, 1): plain H/s for m = 0, growing with m.
-    """
-    m = starvation.astype(np.float64)
-    var_m = float(np.var(m[candidates])) if np.any(candidates) else 0.0
-    return 1.0 + m / max(var_m, 1.0)
+@njit(cache=True)
+def _before(neg_key, a, b):
+    """Strict order of the greedy: larger boost * H/s first, then lower index."""
+    return neg_key[a] < neg_key[b] or (neg_key[a] == neg_key[b] and a < b)
 
 
 @njit(cache=True)
-def _greedy_frames(reward, p_deliver, owner, size_bytes, h, boost, cand, frame_bytes, n_frames):
-    """x (N, K): per frame, objects by decreasing boost * H/s, ties by index, each
-    taken if it still fits (first fit down the order); h updated with p_ij after
-    each frame. ``h`` (float64 (K, C)) is updated in place."""
+def _greedy_frames(reward, p_deliver, owner, size_bytes, history, starvation, frame_bytes, n_frames):
+    """x (N, K): Algorithm 1 with starvation compensation.
+
+    Candidates are the objects with H > 0 that fit a frame. Per frame, objects go by
+    decreasing boost * H/s (ties: lower index) and each is taken if it still fits, so
+    the frame is filled first-fit down that order; then h is updated with p_ij for the
+    objects sent and only their keys change, so the order is kept by one merge rather
+    than a full sort per frame.
+    """
     K, C = reward.shape
-    n_cand = cand.shape[0]
     x = np.zeros((n_frames, K), dtype=np.bool_)
-    weight = np.zeros(n_cand)
-    for c in range(n_cand):
-        k = cand[c]
+    h = np.empty((K, C))
+    weight = np.zeros(K)
+    for k in range(K):
         w = 0.0
         for j in range(C):
+            h[k, j] = 1.0 if history[k, j] else 0.0
             w += reward[k, j] * (1.0 - h[k, j])  # eq. GreedyMetric
-        weight[c] = w
+        weight[k] = w
+    n_cand = 0
+    cand = np.empty(K, dtype=np.int64)
+    for k in range(K):
+        if weight[k] > 0.0 and size_bytes[k] <= frame_bytes:
+            cand[n_cand] = k
+            n_cand += 1
+    cand = cand[:n_cand]
+    if n_cand == 0:
+        return x
+    # starvation boost 1 + m / max(var_m, 1), var_m over the candidates (module docstring)
+    mean_m = 0.0
+    for c in range(n_cand):
+        mean_m += starvation[cand[c]]
+    mean_m /= n_cand
+    var_m = 0.0
+    for c in range(n_cand):
+        var_m += (starvation[cand[c]] - mean_m) ** 2
+    var_m = max(var_m / n_cand, 1.0)
+    boost = np.empty(n_cand)
     neg_key = np.empty(n_cand)
+    for c in range(n_cand):
+        k = cand[c]
+        boost[c] = 1.0 + starvation[k] / var_m
+        neg_key[c] = -(weight[k] / size_bytes[k]) * boost[c]
+    order = np.argsort(neg_key, kind="mergesort")  # stable: ties stay in index order
+    merged = np.empty(n_cand, dtype=np.int64)
     sent = np.empty(n_cand, dtype=np.int64)
+    is_sent = np.zeros(n_cand, dtype=np.bool_)
     for n in range(n_frames):
         min_size = frame_bytes + 1
         for c in range(n_cand):
-            k = cand[c]
-            if weight[c] > 0.0:
-                neg_key[c] = -(weight[c] / size_bytes[k]) * boost[k]
-                if size_bytes[k] < min_size:
-                    min_size = size_bytes[k]
-            else:
-                neg_key[c] = np.inf
+            if neg_key[c] < 0.0 and size_bytes[cand[c]] < min_size:
+                min_size = size_bytes[cand[c]]
         if min_size > frame_bytes:
             break
-        order = np.argsort(neg_key, kind="mergesort")  # stable: equal keys stay in index order
         room = frame_bytes
         n_sent = 0
         for t in range(n_cand):
             c = order[t]
-            if neg_key[c] == np.inf or room < min_size:
+            if neg_key[c] >= 0.0 or room < min_size:
                 break
             k = cand[c]
             if size_bytes[k] <= room:
                 x[n, k] = True
                 room -= size_bytes[k]
                 sent[n_sent] = c
+                is_sent[c] = True
                 n_sent += 1
         for t in range(n_sent):
             c = sent[t]
@@ -73,27 +99,44 @@ def _greedy_frames(reward, p_deliver, owner, size_bytes, h, boost, cand, frame_b
             for j in range(C):
                 h[k, j] = 1.0 - (1.0 - h[k, j]) * (1.0 - p_deliver[i, j])  # expected delivery
                 w += reward[k, j] * (1.0 - h[k, j])
-            weight[c] = w
+            weight[k] = w
+            neg_key[c] = -(w / size_bytes[k]) * boost[c] if w > 0.0 else 0.0
+        for t in range(1, n_sent):  # insertion sort of the few re-keyed objects
+            c = sent[t]
+            u = t - 1
+            while u >= 0 and _before(neg_key, c, sent[u]):
+                sent[u + 1] = sent[u]
+                u -= 1
+            sent[u + 1] = c
+        a, b, out = 0, 0, 0
+        while out < n_cand:
+            while a < n_cand and is_sent[order[a]]:
+                a += 1
+            if a < n_cand and (b >= n_sent or _before(neg_key, order[a], sent[b])):
+                merged[out] = order[a]
+                a += 1
+            else:
+                merged[out] = sent[b]
+                b += 1
+            out += 1
+        order, merged = merged, order
+        for t in range(n_sent):
+            is_sent[sent[t]] = False
     return x
 
 
 def greedy_schedule(instance: Instance, starvation: np.ndarray | None = None) -> Schedule:
     """Algorithm 1: per frame, fill S_f by decreasing H/s (times the starvation boost)."""
-    K = instance.n_objects
-    if K == 0 or instance.n_frames == 0:
+    if instance.n_objects == 0 or instance.n_frames == 0:
         return Schedule(tuple(() for _ in range(instance.n_frames)))
-    fits = instance.size_bytes <= instance.frame_bytes
-    candidates = instance.wanted() & fits
-    m = np.zeros(K, dtype=np.int64) if starvation is None else np.asarray(starvation, dtype=np.int64)
-    boost = starvation_boost(m, candidates)
+    m = np.zeros(instance.n_objects, dtype=np.int64) if starvation is None else np.asarray(starvation, dtype=np.int64)
     x = _greedy_frames(
         instance.reward,
         instance.p_deliver,
         instance.owner,
         instance.size_bytes,
-        instance.history.astype(np.float64),
-        boost,
-        np.flatnonzero(candidates).astype(np.int64),
+        instance.history,
+        m,
         np.int64(instance.frame_bytes),
         np.int64(instance.n_frames),
     )

@@ -58,7 +58,8 @@ class TdmaPlan:
 def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
     """Lay the schedule out in time (frame duration T_n = S_f * 8 / B)."""
     frame_s = instance.frame_bytes * 8.0 / instance.bandwidth_bps
-    total_reward = instance.reward.sum(axis=1).tolist()  # sum_j y_(i,k),j
+    scheduled = sorted(schedule.sent())
+    total_reward = dict(zip(scheduled, instance.reward[scheduled].sum(axis=1).tolist()))  # sum_j y_(i,k),j
     owner = instance.owner.tolist()
     vids = instance.vids.tolist()
     oids = instance.object_id.tolist()

@@ -71,3 +71,38 @@ def brute_mdp(instance: Instance) -> float:
         return best
 
     return value(0, start)
+
+
+def reference_greedy(instance: Instance, starvation: list[int] | None = None) -> list[list[int]]:
+    """Algorithm 1 written plainly: every frame, recompute H, sort everything, fill."""
+    K, C = instance.n_objects, instance.n_vehicles
+    y = instance.reward.tolist()
+    p = instance.p_object().tolist()
+    size = instance.size_bytes.tolist()
+    h = instance.history.astype(float).tolist()
+    m = [0] * K if starvation is None else list(starvation)
+
+    def weight(k: int) -> float:
+        total = 0.0
+        for j in range(C):
+            total += y[k][j] * (1.0 - h[k][j])
+        return total
+
+    cands = [k for k in range(K) if weight(k) > 0.0 and size[k] <= instance.frame_bytes]
+    if cands:
+        mean = sum(m[k] for k in cands) / len(cands)
+        var = max(sum((m[k] - mean) ** 2 for k in cands) / len(cands), 1.0)
+    boost = {k: 1.0 + m[k] / var for k in cands}
+    frames = []
+    for _ in range(instance.n_frames):
+        keyed = sorted((-(weight(k) / size[k]) * boost[k], k) for k in cands if weight(k) > 0.0)
+        room, frame = instance.frame_bytes, []
+        for _, k in keyed:
+            if size[k] <= room:
+                frame.append(k)
+                room -= size[k]
+        for k in frame:
+            for j in range(C):
+                h[k][j] = 1.0 - (1.0 - h[k][j]) * (1.0 - p[k][j])
+        frames.append(sorted(frame))
+    return frames

@@ -1,0 +1,265 @@
+"""Scheduler: hand-derived cases, the instance builder, state, TDMA and the registry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vehicle_agent.scheduler import (
+    InstanceTooLarge,
+    ObjectOffer,
+    Schedule,
+    SchedulerState,
+    UnknownSchedulerError,
+    check_schedule,
+    expected_reward,
+    frame_weights,
+    get,
+    greedy_schedule,
+    instance_from_arrays,
+    knapsack_exact,
+    knapsack_fptas,
+    link_probability,
+    make_instance,
+    mdp_optimal,
+    names,
+    optimal_open_loop,
+    register,
+    tdma_plan,
+)
+from vehicle_agent.scheduler import registry
+
+FRESH = SchedulerState()
+
+
+def _offer(oid: int, size: int, rewards: dict[int, float]) -> ObjectOffer:
+    """An object occluded from (v = 0) and relevant (r) to each listed receiver."""
+    return ObjectOffer(oid, size, visibility={j: 0.0 for j in rewards}, relevance=rewards)
+
+
+def _one_frame_of_100_bytes() -> dict:
+    # S_f = B * T_n / 8 = 8000 b/s * 0.1 s / 8 = 100 bytes; N = T_d / T_n = 1
+    return dict(bandwidth_bps=8000.0, frame_duration_s=0.1, decision_interval_s=0.1)
+
+
+def _xyz_instance():
+    # X: 51 B, H = 0.6 -> H/s = 0.01176;  Y, Z: 50 B, H = 0.5 -> H/s = 0.01
+    offers = {1: [_offer(1, 51, {2: 0.6}), _offer(2, 50, {3: 0.5})], 2: [_offer(1, 50, {1: 0.5})]}
+    return make_instance(offers, lambda i, j: 1.0, **_one_frame_of_100_bytes())
+
+
+# ------------------------------------------------------------------------- instance
+
+
+def test_reward_is_one_minus_visibility_times_relevance():
+    offers = {
+        7: [ObjectOffer(3, 1000, visibility={5: 1.0, 9: 0.0}, relevance={5: 0.8, 9: 0.25})],
+        5: [ObjectOffer(1, 2000, visibility={7: 0.0}, relevance={7: 1.0})],
+    }
+    inst = make_instance(offers, lambda i, j: 0.9, vids=[11])
+    assert inst.vids.tolist() == [5, 7, 9, 11]
+    assert inst.keys() == [(5, 1), (7, 3)]
+    # (7,3) -> 5: (1 - 1) * 0.8 = 0;  -> 9: (1 - 0) * 0.25 = 0.25
+    assert inst.reward.tolist() == [[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.25, 0.0]]
+    # S_f = 7.2e6 b/s * 10 ms / 8 = 9000 B, N = 100 ms / 10 ms = 10
+    assert (inst.frame_bytes, inst.n_frames) == (9000, 10)
+    assert np.all(np.diag(inst.p_deliver) == 1.0) and inst.p_deliver[0, 1] == 0.9
+
+
+def test_instance_is_canonical_whatever_the_message_order():
+    a = {1: [_offer(4, 100, {2: 0.5}), _offer(2, 300, {3: 1.0})], 3: [_offer(9, 50, {1: 0.2})], 2: []}
+    b = {2: [], 3: [_offer(9, 50, {1: 0.2})], 1: [_offer(2, 300, {3: 1.0}), _offer(4, 100, {2: 0.5})]}
+    p = {(i, j): 0.1 * i + 0.01 * j for i in (1, 2, 3) for j in (1, 2, 3)}
+    ia, ib = make_instance(a, p), make_instance(b, p)
+    for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history"):
+        assert np.array_equal(getattr(ia, name), getattr(ib, name)), name
+    with pytest.raises(ValueError):
+        ia.reward[0, 0] = 1.0  # read-only
+
+
+def test_instance_rejects_bad_input():
+    with pytest.raises(ValueError, match="duplicate"):
+        instance_from_arrays([1, 2], [1, 1], [5, 5], [10, 10], np.zeros((2, 2)), np.ones((2, 2)), frame_bytes=100, n_frames=1)
+    with pytest.raises(ValueError, match="owner"):
+        instance_from_arrays([1, 2], [3], [5], [10], np.zeros((1, 2)), np.ones((2, 2)), frame_bytes=100, n_frames=1)
+    with pytest.raises(ValueError, match="reward"):
+        instance_from_arrays([1, 2], [1], [5], [10], [[0.0, 1.5]], np.ones((2, 2)), frame_bytes=100, n_frames=1)
+
+
+def test_link_probability_falls_with_distance():
+    p = link_probability(np.array([0.0, 50.0, 150.0, 300.0]))
+    assert p[0] > p[1] > p[2] > p[3] and p[2] == pytest.approx(0.5) and p[1] > 0.95
+
+
+# ------------------------------------------------------------------------- hand-derived
+
+
+def test_greedy_by_density_versus_exact_knapsack():
+    inst = _xyz_instance()
+    # greedy takes X (51 B, best H/s); neither 50 B object fits the 49 B left: reward 0.6
+    g = get("greedy")(inst, FRESH)
+    assert g.keyed(inst) == (((1, 1),),)
+    assert expected_reward(inst, g) == pytest.approx(0.6)
+    # the exact per-frame knapsack and the optimum take Y + Z = 100 B: reward 1.0
+    for name in ("knapsack", "optimal", "fptas"):
+        s = get(name)(inst, FRESH)
+        assert s.keyed(inst) == (((1, 2), (2, 1)),), name
+        assert expected_reward(inst, s) == pytest.approx(1.0)
+
+
+def test_knapsack_solvers_by_hand():
+    profit, size = np.array([0.6, 0.5, 0.5, 0.0]), np.array([51, 50, 50, 10])
+    assert knapsack_exact(profit, size, 100).tolist() == [False, True, True, False]
+    assert knapsack_fptas(profit, size, 100, 0.1).tolist() == [False, True, True, False]
+    with pytest.raises(ValueError):
+        knapsack_fptas(profit, size, 100, 0.0)
+
+
+def test_expected_delivery_resend_and_the_value_of_feedback():
+    # one receiver, p = 0.5, N = 2 frames of 100 B; X: 60 B y = 1.0, Y: 60 B y = 0.4
+    offers = {1: [_offer(1, 60, {2: 1.0}), _offer(2, 60, {2: 0.4})]}
+    inst = make_instance(offers, lambda i, j: 0.5, bandwidth_bps=8000.0, frame_duration_s=0.1, decision_interval_s=0.2)
+    # frame 1: H_X = 1.0 > H_Y = 0.4 -> X; h_X = 0.5. frame 2: H_X = 0.5 > H_Y = 0.4 -> X again
+    g = get("greedy")(inst, FRESH)
+    assert g.frames == ((0,), (0,))
+    # E = 1.0 * (1 - 0.5^2) = 0.75; X then Y would give 0.5 + 0.2 = 0.7, Y twice 0.3
+    assert expected_reward(inst, g) == pytest.approx(0.75)
+    assert expected_reward(inst, optimal_open_loop(inst)) == pytest.approx(0.75)
+    assert frame_weights(inst, g) == pytest.approx([1.0, 0.5])
+    # with feedback: X first; delivered (0.5) -> Y earns 0.4 * 0.5, lost -> X again earns 0.5
+    # U = 0.5 + 0.5 * 0.2 + 0.5 * 0.5 = 0.85
+    mdp = mdp_optimal(inst)
+    assert mdp.value == pytest.approx(0.85) and mdp.first_frame == (0,)
+
+
+def test_exact_solvers_refuse_large_instances():
+    rng = np.random.default_rng(0)
+    K, C = 40, 6
+    inst = instance_from_arrays(
+        range(C), rng.integers(0, C, K), range(K), rng.integers(100, 400, K),
+        rng.random((K, C)), np.full((C, C), 0.9), frame_bytes=1000, n_frames=3,
+    )
+    with pytest.raises(InstanceTooLarge, match="greedy"):
+        get("optimal")(inst, FRESH)
+    with pytest.raises(InstanceTooLarge, match="greedy"):
+        mdp_optimal(inst)
+    with pytest.raises(InstanceTooLarge, match="fptas"):
+        knapsack_exact(np.ones(2000), np.ones(2000, dtype=np.int64), 100_000)
+
+
+# ------------------------------------------------------------------------- starvation
+
+
+def test_starvation_lifts_a_long_starved_object_over_a_fresh_one():
+    # A (vid 1) and B (vid 2): both 60 B, y = 0.5, one fits a 100 B frame; equal H/s
+    offers = {1: [_offer(1, 60, {3: 0.5})], 2: [_offer(1, 60, {3: 0.5})]}
+    inst = make_instance(offers, lambda i, j: 1.0, **_one_frame_of_100_bytes())
+    assert greedy_schedule(inst).keyed(inst) == (((1, 1),),)  # tie -> lower (vid, id)
+    # m = [0, 5]: var_m = 6.25, boost_B = 1 + 5 / 6.25 = 1.8 > boost_A = 1
+    assert greedy_schedule(inst, np.array([0, 5])).keyed(inst) == (((2, 1),),)
+
+
+def test_starvation_does_not_beat_a_much_better_object():
+    # A: H/s = 1.0 / 60, B: 0.5 / 60, B starved m = 5: 0.5 * 1.8 = 0.9 < 1.0 -> A
+    offers = {1: [_offer(1, 60, {3: 1.0})], 2: [_offer(1, 60, {3: 0.5})]}
+    inst = make_instance(offers, lambda i, j: 1.0, **_one_frame_of_100_bytes())
+    assert greedy_schedule(inst, np.array([0, 5])).keyed(inst) == (((1, 1),),)
+
+
+def test_state_counts_skipped_intervals_and_alternates_equal_objects():
+    offers = {1: [_offer(1, 60, {3: 0.5})], 2: [_offer(1, 60, {3: 0.5})], 3: [_offer(1, 60, {1: 0.0})]}
+    inst = make_instance(offers, lambda i, j: 1.0, **_one_frame_of_100_bytes())
+    autocast, state, sent = get("autocast"), FRESH, []
+    for _ in range(4):
+        s = autocast(inst, state)
+        sent.append(s.keyed(inst)[0])
+        state = state.advance(inst, s)
+    # interval 1: tie -> A, B starves (m = 1, var = 0.25 -> boost 2) -> interval 2: B, ...
+    assert sent == [((1, 1),), ((2, 1),), ((1, 1),), ((2, 1),)]
+    assert state.starved() == {(1, 1): 1}  # (3,1) carries no reward: never counted
+    # a skipped object keeps counting while it stays wanted
+    never = SchedulerState()
+    for m in (1, 2, 3):
+        never = never.advance(inst, Schedule(((0,),)))
+        assert never.starved() == {(2, 1): m}
+
+
+# ------------------------------------------------------------------------- agnostic
+
+
+def test_agnostic_round_robin_ignores_reward_and_resumes_from_the_cursor():
+    # four 40 B objects, two fit a 100 B frame; only (2,1) has any reward
+    offers = {1: [_offer(1, 40, {}), _offer(2, 40, {})], 2: [_offer(1, 40, {3: 1.0})], 3: [_offer(1, 40, {})]}
+    inst = make_instance(offers, lambda i, j: 1.0, **_one_frame_of_100_bytes())
+    agnostic, state, sent = get("agnostic"), FRESH, []
+    for _ in range(3):
+        s = agnostic(inst, state)
+        sent.append(s.keyed(inst)[0])
+        state = state.advance(inst, s)
+    assert sent == [((1, 1), (1, 2)), ((2, 1), (3, 1)), ((1, 1), (1, 2))]
+    assert state.cursor == (1, 2)
+
+
+# ------------------------------------------------------------------------- TDMA
+
+
+def test_tdma_orders_senders_by_reward_and_times_by_size():
+    # B = 7.2 Mbps, T_n = 10 ms: S_f = 9000 B
+    offers = {5: [_offer(1, 900, {3: 0.3})], 3: [_offer(1, 1800, {5: 0.9}), _offer(2, 450, {5: 0.1})]}
+    inst = make_instance(offers, lambda i, j: 1.0)
+    plan = tdma_plan(inst, Schedule(((0, 1, 2), (2,))))
+    got = [(t.frame, t.vid, t.object_id, round(t.start_s * 1e3, 6), round(t.duration_s * 1e3, 6)) for t in plan.transmissions]
+    # frame 0: vid 3 (0.9 + 0.1) before vid 5 (0.3); 1800 B * 8 / 7.2 Mb/s = 2 ms, 450 B = 0.5 ms, 900 B = 1 ms
+    # frame 1 starts at T_n = 10 ms
+    assert got == [(0, 3, 1, 0.0, 2.0), (0, 3, 2, 2.0, 0.5), (0, 5, 1, 2.5, 1.0), (1, 5, 1, 10.0, 1.0)]
+    assert [(s.frame, s.vid, round(s.start_s * 1e3, 6), round(s.duration_s * 1e3, 6)) for s in plan.slots()] == [
+        (0, 3, 0.0, 2.5), (0, 5, 2.5, 1.0), (1, 5, 10.0, 1.0)
+    ]
+    assert plan.frame_duration_s == pytest.approx(0.01)
+    assert [t.object_id for t in plan.sent_by(3)] == [1, 2]
+
+
+def test_tdma_breaks_reward_ties_by_vid():
+    offers = {9: [_offer(1, 100, {4: 0.5})], 4: [_offer(1, 100, {9: 0.5})]}
+    inst = make_instance(offers, lambda i, j: 1.0)
+    assert [s.vid for s in tdma_plan(inst, Schedule(((0, 1),))).slots()] == [4, 9]
+
+
+# ------------------------------------------------------------------------- registry
+
+
+def test_registry_names_and_aliases():
+    for name in ("greedy", "autocast", "fptas", "autocast-fptas", "optimal", "agnostic", "knapsack"):
+        assert name in names()
+    assert get("autocast") is get("greedy") and get("autocast-fptas") is get("fptas")
+
+
+def test_unknown_scheduler_lists_the_known_ones():
+    with pytest.raises(UnknownSchedulerError, match="known: .*agnostic.*greedy"):
+        get("no-such-scheduler")
+    with pytest.raises(UnknownSchedulerError, match="cannot load"):
+        get("no_such_module:fn")
+
+
+def test_user_scheduler_by_registration_and_by_import_path():
+    @register("test-nothing")
+    def nothing(instance, state):
+        return Schedule(tuple(() for _ in range(instance.n_frames)))
+
+    try:
+        inst = _xyz_instance()
+        assert get("test-nothing")(inst, FRESH) == Schedule(((),))
+        assert get("vehicle_agent.scheduler.greedy:greedy_plain")(inst, FRESH) == get("greedy")(inst, FRESH)
+        with pytest.raises(ValueError, match="already registered"):
+            register("greedy")(nothing)
+    finally:
+        registry._SCHEDULERS.pop("test-nothing", None)
+
+
+def test_check_schedule_catches_overfull_frames():
+    inst = _xyz_instance()
+    with pytest.raises(ValueError, match="exceed"):
+        check_schedule(inst, Schedule(((0, 1),)))
+    with pytest.raises(ValueError, match="frames"):
+        check_schedule(inst, Schedule(((), ())))
+    check_schedule(inst, Schedule(((1, 2),)))

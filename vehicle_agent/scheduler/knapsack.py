@@ -79,19 +79,24 @@ def _knapsack_by_profit(scaled, size, capacity, levels):
 
 
 def knapsack_exact(profit: np.ndarray, size_bytes: np.ndarray, capacity: int) -> np.ndarray:
-    """bool (n,): an optimal 0/1 knapsack selection (DP over bytes, O(n * capacity))."""
+    """bool (n,): an optimal 0/1 knapsack selection (DP over bytes, O(n * capacity)).
+
+    Sizes and capacity are first divided by the sizes' greatest common divisor (point
+    clouds are whole points of equal byte size), which changes no solution."""
     profit = np.asarray(profit, dtype=np.float64)
     size_bytes = np.asarray(size_bytes, dtype=np.int64)
     live = np.flatnonzero((profit > 0) & (size_bytes <= capacity))
     chosen = np.zeros(len(profit), dtype=bool)
     if len(live) == 0:
         return chosen
-    if len(live) * (capacity + 1) > MAX_EXACT_CELLS:
+    unit = int(np.gcd.reduce(size_bytes[live]))
+    cells = len(live) * (capacity // unit + 1)
+    if cells > MAX_EXACT_CELLS:
         raise InstanceTooLarge(
-            f"exact knapsack: {len(live)} items x {capacity} bytes = {len(live) * (capacity + 1):.2g} cells "
+            f"exact knapsack: {len(live)} items x {capacity // unit + 1} capacity steps = {cells:.2g} cells "
             f"exceeds {MAX_EXACT_CELLS:.0e}; use 'fptas' or 'greedy'"
         )
-    chosen[live] = _knapsack_by_bytes(profit[live], size_bytes[live], np.int64(capacity))
+    chosen[live] = _knapsack_by_bytes(profit[live], size_bytes[live] // unit, np.int64(capacity // unit))
     return chosen
 
 

@@ -11,7 +11,8 @@ Two optima, because vehicles get no acknowledgements inside a decision interval:
   feedback the state evolves deterministically in expectation, and an object sent c
   times reaches j with probability 1 - (1 - p_ij)^c whichever frames carry it, so
   the optimum is the best multiset of N frame loads; it is found exactly by
-  enumerating multisets of maximal frame loads.
+  enumerating multisets of maximal frame loads. With N = 1 it is a plain knapsack on
+  the expected gain, solved by the exact DP over bytes at any realistic size.
 
 Both only ever need maximal actions (no further wanted object fits): sending more
 never lowers the expected reward, now or later. Both refuse instances whose search
@@ -27,7 +28,7 @@ from math import comb
 import numpy as np
 
 from vehicle_agent.scheduler.instance import Instance, Schedule
-from vehicle_agent.scheduler.knapsack import InstanceTooLarge
+from vehicle_agent.scheduler.knapsack import InstanceTooLarge, knapsack_exact
 from vehicle_agent.scheduler.registry import register
 from vehicle_agent.scheduler.state import SchedulerState
 
@@ -64,11 +65,14 @@ def optimal_open_loop(instance: Instance) -> Schedule:
     u = len(objects)
     if u == 0 or N == 0:
         return _empty(instance)
-    if u > MAX_OPEN_LOOP_OBJECTS:
+    if u > MAX_OPEN_LOOP_OBJECTS and N > 1:
         raise InstanceTooLarge(
             f"optimal: {u} wanted objects exceed the limit of {MAX_OPEN_LOOP_OBJECTS} for exact search; "
             "use 'greedy' or 'fptas'"
         )
+    if N == 1:  # a single frame is a knapsack on the expected gain sum_j y (1 - h) p_ij
+        gain = np.sum(instance.reward * ~instance.history * instance.p_object(), axis=1)
+        return Schedule((tuple(np.flatnonzero(knapsack_exact(gain, instance.size_bytes, instance.frame_bytes)).tolist()),))
     loads = maximal_loads(instance.size_bytes[objects], instance.frame_bytes)
     F = len(loads)
     n_multisets = comb(F + N - 1, N)

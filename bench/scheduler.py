@@ -17,7 +17,6 @@ series:
 from __future__ import annotations
 
 import argparse
-import logging
 import statistics
 import time
 from collections.abc import Callable
@@ -38,7 +37,6 @@ from vehicle_agent.scheduler import (
     mdp_optimal,
 )
 
-log = logging.getLogger(__name__)
 
 ARM_LENGTH_M = 90.0
 LANE_OFFSET_M = (1.75, 5.25)  # right-hand lanes' centre offsets from the road axis

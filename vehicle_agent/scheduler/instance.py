@@ -168,9 +168,9 @@ def instance_from_arrays(
         raise ValueError("invalid scheduling instance: duplicate vehicle id")
     vorder = np.argsort(vids, kind="stable")
     sorted_vids = vids[vorder]
-    owner = np.searchsorted(sorted_vids, owner_vid)
-    if len(owner) and (np.any(owner >= len(sorted_vids)) or np.any(sorted_vids[np.minimum(owner, len(vids) - 1)] != owner_vid)):
+    if not np.all(np.isin(owner_vid, vids)):
         raise ValueError("invalid scheduling instance: an object's owner is not among vids")
+    owner = np.searchsorted(sorted_vids, owner_vid)
     korder = np.lexsort((object_id, owner))
     reward = reward[korder][:, vorder].copy()
     history = history[korder][:, vorder].copy()

@@ -7,6 +7,8 @@ update h with the expected delivery, and go on to the next frame, as greedy does
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numba import njit
 
@@ -146,7 +148,10 @@ def knapsack_fptas(profit: np.ndarray, size_bytes: np.ndarray, capacity: int, ep
     return chosen
 
 
-def frame_by_frame(instance: Instance, solve_frame) -> Schedule:
+FrameSolver = Callable[[np.ndarray, np.ndarray, int], np.ndarray]  # (H, sizes, S_f) -> chosen
+
+
+def frame_by_frame(instance: Instance, solve_frame: FrameSolver) -> Schedule:
     """Solve each frame's knapsack on H^n, then update h with p_ij, N times."""
     h = instance.history.astype(np.float64)
     p = instance.p_object()

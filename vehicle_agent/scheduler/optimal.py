@@ -39,7 +39,7 @@ MAX_MDP_PAIRS = 24  # (object, receiver) pairs with reward still to earn
 MAX_MDP_EVALUATIONS = 2_000_000  # successor states visited by the Bellman recursion
 
 
-def _subsets(size_bytes: np.ndarray, capacity: int) -> tuple[np.ndarray, np.ndarray]:
+def _subsets(size_bytes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All subsets of the objects as bool rows (ascending bitmask order) and their bytes."""
     u = len(size_bytes)
     bits = ((np.arange(1 << u)[:, None] >> np.arange(u)) & 1).astype(bool)
@@ -48,7 +48,7 @@ def _subsets(size_bytes: np.ndarray, capacity: int) -> tuple[np.ndarray, np.ndar
 
 def maximal_loads(size_bytes: np.ndarray, capacity: int) -> np.ndarray:
     """bool (F, u): every frame load that fits ``capacity`` and admits no further object."""
-    bits, used = _subsets(np.asarray(size_bytes, dtype=np.int64), capacity)
+    bits, used = _subsets(np.asarray(size_bytes, dtype=np.int64))
     fits = used <= capacity
     smallest_out = np.where(bits, np.iinfo(np.int64).max, size_bytes[None, :]).min(axis=1)
     return bits[fits & (smallest_out > capacity - used)]
@@ -144,7 +144,7 @@ def mdp_optimal(instance: Instance, max_evaluations: int = MAX_MDP_EVALUATIONS) 
     for e, t in enumerate(pair_k.tolist()):
         pairs_of[t] |= 1 << e
     sizes = instance.size_bytes[objects].tolist()
-    bits, used = _subsets(instance.size_bytes[objects], cap)
+    bits, used = _subsets(instance.size_bytes[objects])
     feasible = [(int(b @ (1 << np.arange(u))), int(s)) for b, s in zip(bits, used) if s <= cap]
 
     actions_for: dict[int, list[int]] = {}

@@ -10,6 +10,7 @@ from vehicle_agent.scheduler import (
     ObjectOffer,
     Schedule,
     SchedulerState,
+    SenderOffers,
     UnknownSchedulerError,
     check_schedule,
     expected_reward,
@@ -75,6 +76,25 @@ def test_instance_is_canonical_whatever_the_message_order():
         assert np.array_equal(getattr(ia, name), getattr(ib, name)), name
     with pytest.raises(ValueError):
         ia.reward[0, 0] = 1.0  # read-only
+
+
+def test_array_offers_build_the_same_instance_as_per_object_offers():
+    per_object = {
+        4: [ObjectOffer(2, 900, visibility={1: 1.0, 6: 0.0}, relevance={1: 0.5, 6: 0.75}), _offer(1, 300, {6: 0.2})],
+        6: [_offer(8, 500, {4: 1.0})],
+    }
+    arrays = {
+        6: SenderOffers(np.array([8]), np.array([500]), np.array([4]), np.zeros((1, 1)), np.ones((1, 1))),
+        4: SenderOffers(
+            np.array([2, 1]), np.array([900, 300]), np.array([6, 1]),
+            visibility=np.array([[0.0, 1.0], [0.0, 0.0]]), relevance=np.array([[0.75, 0.5], [0.2, 0.0]]),
+        ),
+    }
+    a, b = make_instance(per_object, lambda i, j: 0.8), make_instance(arrays, lambda i, j: 0.8)
+    for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    # (4,2) -> 6: (1 - 0) * 0.75;  -> 1: (1 - 1) * 0.5 = 0
+    assert a.reward[a.keys().index((4, 2))].tolist() == [0.0, 0.0, 0.75]
 
 
 def test_instance_rejects_bad_input():

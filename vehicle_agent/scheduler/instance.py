@@ -139,6 +139,10 @@ class Schedule:
 # ------------------------------------------------------------------------- builders
 
 
+def _ints(a: Iterable[int]) -> np.ndarray:
+    return np.asarray(a if isinstance(a, np.ndarray) else list(a), dtype=np.int64)
+
+
 def instance_from_arrays(
     vids: Iterable[int],
     owner_vid: Iterable[int],
@@ -155,10 +159,7 @@ def instance_from_arrays(
 ) -> Instance:
     """Canonicalise arrays given in any order: ``reward``/``history`` are (K, C) and
     ``p_deliver`` (C, C), their vehicle axes in the order of ``vids``."""
-    vids = np.asarray(list(vids), dtype=np.int64)
-    owner_vid = np.asarray(list(owner_vid), dtype=np.int64)
-    object_id = np.asarray(list(object_id), dtype=np.int64)
-    size_bytes = np.asarray(list(size_bytes), dtype=np.int64)
+    vids, owner_vid, object_id, size_bytes = (_ints(a) for a in (vids, owner_vid, object_id, size_bytes))
     reward = np.asarray(reward, dtype=np.float64).reshape(len(object_id), len(vids))
     p_deliver = np.asarray(p_deliver, dtype=np.float64).reshape(len(vids), len(vids))
     if history is None:
@@ -194,8 +195,41 @@ def instance_from_arrays(
     )
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class SenderOffers:
+    """One sender's object map as arrays (the cheap form for a control message): row t
+    is object ``object_id[t]``, column c refers to receiver ``receivers[c]``."""
+
+    object_id: np.ndarray  # int (n,)
+    size_bytes: np.ndarray  # int (n,)
+    receivers: np.ndarray  # int (m,)
+    visibility: np.ndarray  # float (n, m), v
+    relevance: np.ndarray  # float (n, m), r
+
+
+def _as_arrays(objs: SenderOffers | Iterable[OfferLike]) -> SenderOffers:
+    if hasattr(objs, "receivers"):
+        return objs  # type: ignore[return-value]
+    objs = list(objs)
+    receivers = sorted({int(j) for o in objs for j in o.relevance})
+    col = {j: c for c, j in enumerate(receivers)}
+    at = [(t, col[int(j)], rel, o.visibility.get(j, 0.0)) for t, o in enumerate(objs) for j, rel in o.relevance.items()]
+    rows, cols, rel, vis = (list(x) for x in zip(*at)) if at else ([], [], [], [])
+    v = np.zeros((len(objs), len(receivers)))
+    r = np.zeros((len(objs), len(receivers)))
+    v[rows, cols] = vis
+    r[rows, cols] = rel
+    return SenderOffers(
+        np.array([int(o.object_id) for o in objs], dtype=np.int64),
+        np.array([int(o.size_bytes) for o in objs], dtype=np.int64),
+        np.array(receivers, dtype=np.int64),
+        v,
+        r,
+    )
+
+
 def make_instance(
-    offers: Mapping[int, Iterable[OfferLike]],
+    offers: Mapping[int, SenderOffers | Iterable[OfferLike]],
     p_deliver: Callable[[int, int], float] | Mapping[tuple[int, int], float],
     *,
     vids: Iterable[int] = (),
@@ -206,39 +240,45 @@ def make_instance(
 ) -> Instance:
     """Build the instance from the control messages heard this interval.
 
-    ``offers`` maps each sender vid to its objects; ``p_deliver`` gives p_ij for a
-    (sender, receiver) pair; ``vids`` adds receivers that offer nothing; ``history``
-    lists, per object, the receivers that already have it. S_f = B * T_n / 8 bytes and
-    N = floor(T_d / T_n) frames.
+    ``offers`` maps each sender vid to its objects, as ``SenderOffers`` arrays or as
+    per-object records; ``p_deliver`` gives p_ij for a (sender, receiver) pair;
+    ``vids`` adds receivers that offer nothing; ``history`` lists, per object, the
+    receivers that already have it. S_f = B * T_n / 8 bytes and N = floor(T_d / T_n).
     """
-    all_vids = set(int(v) for v in vids) | set(int(i) for i in offers)
-    rows: list[tuple[int, OfferLike]] = []
-    for i, objs in offers.items():
-        for o in objs:
-            rows.append((int(i), o))
-            all_vids |= set(int(j) for j in o.relevance) | set(int(j) for j in o.visibility)
-    vid_list = sorted(all_vids)
-    col = {v: c for c, v in enumerate(vid_list)}
-    reward = np.zeros((len(rows), len(vid_list)))
-    for r, (_, o) in enumerate(rows):
-        for j, rel in o.relevance.items():
-            reward[r, col[int(j)]] = (1.0 - float(o.visibility.get(j, 0.0))) * float(rel)  # y = (1 - v) * r
+    senders = [(int(i), _as_arrays(objs)) for i, objs in offers.items()]
+    all_vids = {int(v) for v in vids} | {i for i, _ in senders}
+    for _, b in senders:
+        all_vids.update(np.asarray(b.receivers).tolist())
+    vid_arr = np.array(sorted(all_vids), dtype=np.int64)
+    C = len(vid_arr)
+    blocks = []
+    for _, b in senders:
+        y = np.zeros((len(b.object_id), C))
+        v, r = np.asarray(b.visibility, dtype=np.float64), np.asarray(b.relevance, dtype=np.float64)
+        y[:, np.searchsorted(vid_arr, b.receivers)] = (1.0 - v) * r  # y = (1 - v) * r
+        blocks.append(y)
+    reward = np.concatenate(blocks) if blocks else np.zeros((0, C))
+    owner_vid = np.concatenate([np.full(len(b.object_id), i, dtype=np.int64) for i, b in senders] or [np.zeros(0, np.int64)])
+    object_id = np.concatenate([np.asarray(b.object_id, dtype=np.int64) for _, b in senders] or [np.zeros(0, np.int64)])
+    size_bytes = np.concatenate([np.asarray(b.size_bytes, dtype=np.int64) for _, b in senders] or [np.zeros(0, np.int64)])
     hist = np.zeros(reward.shape, dtype=bool)
     if history:
-        index = {(i, int(o.object_id)): r for r, (i, o) in enumerate(rows)}
+        index = {key: row for row, key in enumerate(zip(owner_vid.tolist(), object_id.tolist()))}
+        col = {v: c for c, v in enumerate(vid_arr.tolist())}
         for key, receivers in history.items():
-            r = index.get((int(key[0]), int(key[1])))
-            if r is not None:
+            row = index.get((int(key[0]), int(key[1])))
+            if row is not None:
                 for j in receivers:
                     if int(j) in col:
-                        hist[r, col[int(j)]] = True
+                        hist[row, col[int(j)]] = True
     get_p = p_deliver if callable(p_deliver) else (lambda i, j: p_deliver[(i, j)])
-    p = np.array([[1.0 if i == j else float(get_p(i, j)) for j in vid_list] for i in vid_list]).reshape(len(vid_list), len(vid_list))
+    ids = vid_arr.tolist()
+    p = np.array([[1.0 if i == j else float(get_p(i, j)) for j in ids] for i in ids]).reshape(C, C)
     return instance_from_arrays(
-        vid_list,
-        [i for i, _ in rows],
-        [int(o.object_id) for _, o in rows],
-        [int(o.size_bytes) for _, o in rows],
+        vid_arr,
+        owner_vid,
+        object_id,
+        size_bytes,
         reward,
         p,
         frame_bytes=int(bandwidth_bps * frame_duration_s / 8.0),  # S_f = B * T_n

@@ -19,6 +19,7 @@ import argparse
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -85,15 +86,30 @@ def make_config(z: ZenohArgs) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", "[]")
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-        # a client started before its hub keeps retrying instead of failing at once
-        conf.insert_json5("connect/timeout_ms", "-1")
-        conf.insert_json5("connect/exit_on_failure", "false")
+        conf.insert_json5("connect/timeout_ms", str(CONNECT_ATTEMPT_MS))
     return conf
 
 
-def open_session(z: ZenohArgs) -> zenoh.Session:
-    """Open a session; the caller must close it (``with`` or ``finally``)."""
-    return zenoh.open(make_config(z))
+CONNECT_ATTEMPT_MS = 2000
+
+
+def open_session(z: ZenohArgs, wait_s: float = 60.0) -> zenoh.Session:
+    """Open a session; the caller must close it (``with`` or ``finally``).
+
+    A client whose hub is not up yet (processes start in any order) retries for up to
+    ``wait_s`` seconds, then raises ``ConnectionError``.
+    """
+    conf = make_config(z)
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            if time.monotonic() >= deadline:
+                raise ConnectionError(f"no Zenoh hub at {', '.join(z.connect) or 'the configured endpoints'}: "
+                                      f"{exc}") from None
+            log.info("hub not reachable yet, retrying")
+            conf = make_config(z)
 
 
 def big_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:

@@ -51,7 +51,12 @@ def main(argv: list[str] | None = None) -> int:
     run, vid = args.run_id, args.vid
     drops = DropCounter()
     scans: queue.Queue[Scan] = queue.Queue()
-    with open_session(zenoh_args_from(args)) as session:
+    try:
+        session = open_session(zenoh_args_from(args), wait_s=args.startup_timeout_s)
+    except ConnectionError as exc:
+        log.error("%s", exc)
+        return 2
+    with session:
         deadline = time.monotonic() + args.startup_timeout_s
         try:
             _ask(session, keys.world_map(run), MapMsg, deadline)

@@ -60,11 +60,11 @@ class ScenarioParams:
 
     def __post_init__(self) -> None:
         _check(self.scenario in SCENARIOS, "scenario", self.scenario, f"one of {', '.join(SCENARIOS)}")
-        _check_range("vehicles", self.vehicles, 3, 64, int)
+        _check_range("vehicles", self.vehicles, 2, 64, int)
         _check_range("collider_speed_kmh", self.collider_speed_kmh, 5.0, 80.0, float)
         _check_range("delta_s", self.delta_s, -5.0, 5.0, float)
         _check_range("seed", self.seed, 0, 2**31 - 1, int)
-        _check_range("duration_s", self.duration_s, 5.0, 300.0, float)
+        _check_range("duration_s", self.duration_s, 0.5, 600.0, float)
         _check_range("ego_speed_kmh", self.ego_speed_kmh, 0.0, 80.0, float)
 
 

@@ -1,0 +1,75 @@
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import keys
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import Command, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Tick, VehicleSpec, Lane, \
+    LightState, TrafficLight
+
+
+def _examples():
+    spec = VehicleSpec(4.5, 1.8, 1.5, 2.7, 3.0, 7.5, 0.6)
+    lane = Lane("S.in.0", np.array([[0.0, 0.0], [0.0, 10.0]]), 3.5, 13.9, 0, 10.0)
+    return [
+        Scan(3, 0.3, 7, Pose(1.0, -2.0, 0.5), 4.0, np.arange(30, dtype=np.float32).reshape(10, 3)),
+        Command(3, 0.3, 7, -2.5, 0.1),
+        Tick(3, 0.3, [0, 1, 4], [LightState(0, "green")]),
+        Mission(0, 0.0, 2, "background", np.zeros((2, 2)), 12.0, spec, LidarConfig(), 0.1),
+        MapMsg(0, 0.0, "x", [lane], [np.zeros((4, 2))], [TrafficLight(0, 1.0, 2.0)], np.zeros((1, 6))),
+        Outcome(5, 0.5, {"outcome": "safe", "closest_distance_m": 3.2}),
+    ]
+
+
+@pytest.mark.parametrize("msg", _examples(), ids=lambda m: type(m).__name__)
+def test_round_trip(msg):
+    back = decode(encode(msg), type(msg))
+    for name in msg.__dataclass_fields__:
+        a, b = getattr(msg, name), getattr(back, name)
+        if isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        elif name in ("lanes", "drivable"):
+            assert len(a) == len(b)
+        else:
+            assert a == b
+
+
+def test_scan_points_travel_without_tolist():
+    pts = np.random.default_rng(0).random((30000, 3), dtype=np.float32)
+    payload = encode(Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, pts))
+    assert len(payload) < pts.nbytes + 200  # raw bytes, not a list of floats
+
+
+def _envelope(*fields):
+    return msgpack.packb(list(fields), use_bin_type=True)
+
+
+@pytest.mark.parametrize("payload, why", [
+    (b"\xc1garbage", "not msgpack"),
+    (_envelope(99, 1), "unknown message type"),
+    (_envelope(5, 2, 0, 0.0, 1, 0.0, 0.0), "version"),
+    (_envelope(5, 1, 0, 0.0, 1, 0.0), "needs 5 fields"),
+    (_envelope(5, 1, "zero", 0.0, 1, 0.0, 0.0), "expected an int"),
+    (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<f4", [10, 3], b"\x00" * 12]), "do not fill"),
+    (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["O", [1], b"\x00"]), "bad array dtype"),
+    (msgpack.packb({"tick": 1}), "not a message envelope"),
+])
+def test_malformed_payloads_raise_one_named_error(payload, why):
+    with pytest.raises(MalformedMessage, match=why):
+        decode(payload)
+
+
+def test_expected_type_is_enforced():
+    with pytest.raises(MalformedMessage, match="expected Scan, got Command"):
+        decode(encode(Command(0, 0.0, 1, 0.0, 0.0)), Scan)
+
+
+def test_keys_follow_the_schema_and_refuse_bad_parts():
+    assert keys.scan("r1", 7) == "ac/r1/v/7/scan"
+    assert keys.cmd("r1", "*") == "ac/r1/v/*/cmd"
+    assert keys.world_tick("r1") == "ac/r1/world/tick"
+    assert keys.vid_of(keys.alive("r1", 12)) == 12
+    with pytest.raises(ValueError):
+        keys.scan("bad/run", 1)
+    with pytest.raises(ValueError):
+        keys.scan("r", -1)

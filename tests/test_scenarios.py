@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+
+from world_server.geometry import box_corners, first_crossing, point_at, rect_distance
+from world_server.scenarios import SCENARIOS, ScenarioError, ScenarioParams, build, load_scenario_file, \
+    params_from_dict
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.parametrize("delta, kmh", [(-2.0, 20.0), (0.0, 30.0), (1.25, 40.0), (2.0, 30.0)])
+def test_ego_and_collider_cross_at_the_configured_delta(name, delta, kmh):
+    sc = build(ScenarioParams(scenario=name, vehicles=5, delta_s=delta, collider_speed_kmh=kmh))
+    ego, col = sc.ego, sc.collider
+    # both routes pass through the conflict point ...
+    for actor in (ego, col):
+        s = np.arange(0.0, 200.0, 0.01)
+        pts, _ = point_at(actor.route, s)
+        assert np.min(np.linalg.norm(pts - sc.conflict_xy, axis=1)) < 0.01
+    # ... and the collider gets there delta seconds after the ego
+    assert sc.arrival_s(col) - sc.arrival_s(ego) == pytest.approx(delta, abs=1e-6)
+    assert col.speed_mps == pytest.approx(kmh / 3.6)
+
+
+@pytest.mark.parametrize("name", ["left_turn", "red_light"])
+def test_intersection_routes_really_cross(name):
+    sc = build(ScenarioParams(scenario=name, vehicles=5))
+    hit = first_crossing(sc.ego.route, sc.collider.route)
+    assert hit is not None and np.allclose(hit[0], sc.conflict_xy)
+
+
+def test_left_turn_geometry_by_hand():
+    # ego turns left on a quarter circle centred (-8, -8) of radius 8 + 1.75; the collider drives
+    # south on x = -5.25: (x + 8)^2 + (y + 8)^2 = 9.75^2 at x = -5.25 gives y = sqrt(9.75^2 - 2.75^2) - 8
+    sc = build(ScenarioParams(scenario="left_turn", vehicles=5))
+    assert sc.conflict_xy[0] == pytest.approx(-5.25)
+    assert sc.conflict_xy[1] == pytest.approx(np.sqrt(9.75**2 - 2.75**2) - 8, abs=0.02)  # arc drawn as chords
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.parametrize("n", [2, 5, 20, 40])
+def test_vehicles_are_placed_without_overlap(name, n):
+    sc = build(ScenarioParams(scenario=name, vehicles=n, seed=3))
+    assert len(sc.connected()) == n and len(sc.actors) == n + 1
+    poses = np.array([a.start_pose() for a in sc.actors])
+    corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], [a.spec.length_m for a in sc.actors],
+                          [a.spec.width_m for a in sc.actors])
+    for i in range(len(corners)):
+        for j in range(i + 1, len(corners)):
+            assert rect_distance(corners[i], corners[j]) > 0.3, (sc.actors[i], sc.actors[j])
+
+
+def test_same_seed_same_scene_other_seed_other_scene():
+    a, b, c = (build(ScenarioParams(scenario="left_turn", vehicles=20, seed=s)) for s in (1, 1, 2))
+    assert all(np.array_equal(x.route, y.route) for x, y in zip(a.actors, b.actors))
+    assert not all(np.array_equal(x.route, y.route) for x, y in zip(a.actors, c.actors))
+
+
+@pytest.mark.parametrize("values, field", [
+    ({"scenario": "roundabout"}, "scenario"),
+    ({"vehicles": 500}, "vehicles"),
+    ({"vehicles": 2.5}, "vehicles"),
+    ({"collider_speed_kmh": -3}, "collider_speed_kmh"),
+    ({"delta_s": float("nan")}, "delta_s"),
+    ({"colider_speed_kmh": 30}, "colider_speed_kmh"),
+])
+def test_bad_values_name_the_field(values, field):
+    with pytest.raises(ScenarioError, match=f"^{field}:"):
+        params_from_dict(values)
+
+
+def test_scenario_file(tmp_path):
+    good = tmp_path / "s.toml"
+    good.write_text('scenario = "red_light"\nvehicles = 12\ncollider_speed_kmh = 40\ndelta_s = -1\n')
+    assert load_scenario_file(good) == ScenarioParams(scenario="red_light", vehicles=12, collider_speed_kmh=40.0,
+                                                      delta_s=-1.0)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('scenario = "red_light"\nspeed = 3\n')
+    with pytest.raises(ScenarioError, match="^speed: unknown field"):
+        load_scenario_file(bad)
+
+
+def test_too_many_vehicles_for_the_scene_is_a_clear_error():
+    with pytest.raises(ScenarioError, match="^vehicles: only"):
+        build(ScenarioParams(scenario="overtaking", vehicles=64))
+
+
+def test_rect_distance_by_hand():
+    a = box_corners(0.0, 0.0, 0.0, 4.0, 2.0)
+    assert rect_distance(a, box_corners(7.0, 0.0, 0.0, 4.0, 2.0)) == pytest.approx(3.0)
+    assert rect_distance(a, box_corners(0.0, 5.0, np.pi / 2, 4.0, 2.0)) == pytest.approx(2.0)
+    assert rect_distance(a, box_corners(1.0, 0.5, 0.3, 4.0, 2.0)) == 0.0
+    # a plus shape: no corner inside the other, still overlapping
+    assert rect_distance(box_corners(0, 0, 0, 10.0, 1.0), box_corners(0, 0, np.pi / 2, 10.0, 1.0)) == 0.0

@@ -1,0 +1,166 @@
+"""The world server and agents as real processes over real Zenoh on loopback."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import msgpack
+import pytest
+
+from protocol import keys
+from protocol.codec import decode
+from protocol.messages import Command, Scan, Tick
+from protocol.session import ZenohArgs, open_session
+
+RUN = "t"
+
+
+def world(procs, hub, *extra):
+    return procs("world_server", "--run-id", RUN, "--listen", hub, "--agents", "external", "--json",
+                 "--log-level", "WARNING", *extra)
+
+
+def agent(procs, hub, vid):
+    return procs("vehicle_agent", "--run-id", RUN, "--vid", str(vid), "--connect", hub)
+
+
+def outcome_of(proc, timeout=60) -> dict:
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, err
+    return json.loads(out.strip().splitlines()[-1])
+
+
+class Tap:
+    """A test-side Zenoh client that records what crosses the run's keys."""
+
+    def __init__(self, hub: str):
+        self.session = open_session(ZenohArgs(connect=(hub,)))
+        self.lock = threading.Lock()
+        self.ticks: list[int] = []
+        self.scans: list[tuple[int, int]] = []
+        self.cmds: list[tuple[int, int]] = []
+        self.subs = [
+            self.session.declare_subscriber(keys.world_tick(RUN), self._rec(Tick, lambda m: self.ticks.append(m.tick))),
+            self.session.declare_subscriber(keys.scan(RUN, "*"),
+                                            self._rec(Scan, lambda m: self.scans.append((m.tick, m.vid)))),
+            self.session.declare_subscriber(keys.cmd(RUN, "*"),
+                                            self._rec(Command, lambda m: self.cmds.append((m.tick, m.vid)))),
+        ]
+
+    def _rec(self, cls, fn):
+        def handler(sample):
+            with self.lock:
+                fn(decode(sample.payload.to_bytes(), cls))
+        return handler
+
+    def wait_tick(self, k: int, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if self.ticks and self.ticks[-1] >= k:
+                    return
+            time.sleep(0.05)
+        raise TimeoutError(f"tick {k} never came")
+
+    def close(self):
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def tap_on(hub):
+    """Opens a Tap once the test has started the world (the hub)."""
+    taps = []
+
+    def make():
+        taps.append(Tap(hub))
+        return taps[-1]
+
+    yield make
+    for t in taps:
+        t.close()
+
+
+def test_tick_round_trip_with_two_agent_processes(procs, hub, tap_on):
+    w = world(procs, hub, "--vehicles", "2", "--duration", "3")
+    tap = tap_on()
+    for vid in (0, 1):
+        agent(procs, hub, vid)
+    result = outcome_of(w)
+    assert result["ticks"] == 30 and result["dead_agents"] == {}
+    time.sleep(0.2)
+    with tap.lock:
+        assert tap.ticks == list(range(30))
+        assert sorted(tap.scans) == [(k, v) for k in range(30) for v in (0, 1)]
+        assert sorted(tap.cmds) == [(k, v) for k in range(30) for v in (0, 1)]
+
+
+def test_a_killed_agent_does_not_stall_the_world(procs, hub, tap_on):
+    w = world(procs, hub, "--vehicles", "3", "--duration", "4")
+    tap = tap_on()
+    agents = [agent(procs, hub, vid) for vid in range(3)]
+    tap.wait_tick(5)
+    agents[2].kill()
+    t_kill = time.monotonic()
+    result = outcome_of(w)
+    assert time.monotonic() - t_kill < 20
+    assert result["outcome"] is not None and result["ticks"] == 40
+    assert list(result["dead_agents"]) == ["2"] and "liveliness" in result["dead_agents"]["2"]
+
+
+def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
+    w = world(procs, hub, "--vehicles", "3", "--duration", "3", "--agent-timeout-s", "1.0")
+    tap = tap_on()
+    agents = [agent(procs, hub, vid) for vid in range(3)]
+    tap.wait_tick(3)
+    os.kill(agents[1].pid, signal.SIGSTOP)  # alive to the network, silent to the world
+    result = outcome_of(w)
+    assert result["ticks"] == 30
+    assert list(result["dead_agents"]) == ["1"] and "no command" in result["dead_agents"]["1"]
+
+
+def test_malformed_messages_are_counted_and_dropped(procs, hub, tap_on):
+    w = world(procs, hub, "--vehicles", "2", "--duration", "3")
+    tap = tap_on()
+    for vid in (0, 1):
+        agent(procs, hub, vid)
+    tap.wait_tick(2)
+    garbage = [b"\xc1\xc1 not msgpack", msgpack.packb([5, 99, 0, 0.0, 0, 0.0, 0.0]),
+               msgpack.packb([5, 1, "x", 0.0, 0, 0.0, 0.0])]
+    for payload in garbage:
+        tap.session.put(keys.cmd(RUN, 0), payload)
+        tap.session.put(keys.scan(RUN, 1), payload)  # the agent drops these too
+    result = outcome_of(w)
+    assert result["malformed_dropped"] == len(garbage)
+    assert result["ticks"] == 30 and result["dead_agents"] == {}
+
+
+def test_standalone_world_spawns_agents_and_is_deterministic(procs, hub):
+    from tests.conftest import free_port
+
+    results = []
+    for _ in range(2):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        p = procs("world_server", "--scenario", "left_turn", "--vehicles", "10", "--seed", "7",
+                  "--listen", endpoint, "--json", "--log-level", "WARNING")
+        results.append(outcome_of(p, timeout=120))
+    for r in results:
+        assert r["dead_agents"] == {} and r["mode"] == "lockstep"
+        for k in ("run_id", "wall_s", "realtime_factor"):
+            r.pop(k)
+    assert results[0] == results[1]
+    assert results[0]["outcome"] in ("crash", "near_miss", "safe", "deadlock")
+
+
+@pytest.mark.parametrize("flags, field", [(["--vehicles", "500"], "vehicles"),
+                                          (["--scenario", "roundabout"], "scenario"),
+                                          (["--collider-speed", "-1"], "collider_speed_kmh")])
+def test_bad_flags_are_refused_naming_the_field(procs, flags, field):
+    p = procs("world_server", *flags)
+    out, err = p.communicate(timeout=30)
+    assert p.returncode == 2 and f"{field}:" in err

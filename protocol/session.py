@@ -16,11 +16,12 @@ receiver), and the 500 ms scouting delay on open.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -110,6 +111,23 @@ def open_session(z: ZenohArgs, wait_s: float = 60.0) -> zenoh.Session:
                                       f"{exc}") from None
             log.info("hub not reachable yet, retrying")
             conf = make_config(z)
+
+
+@contextlib.contextmanager
+def session_scope(z: ZenohArgs, wait_s: float = 60.0) -> Iterator[zenoh.Session]:
+    """``with session_scope(z) as session:`` opens, and always closes, a session.
+
+    A close that times out (a peer that is stopped but still connected does not answer
+    the graceful close) is logged, not raised: the process's work is done by then.
+    """
+    session = open_session(z, wait_s)
+    try:
+        yield session
+    finally:
+        try:
+            session.close()
+        except zenoh.ZError as exc:
+            log.warning("closing the Zenoh session: %s", exc)
 
 
 def big_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:

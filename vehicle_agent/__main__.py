@@ -13,7 +13,7 @@ import time
 from protocol import keys
 from protocol.codec import encode
 from protocol.messages import MapMsg, Mission, Outcome, Scan
-from protocol.session import DropCounter, add_zenoh_args, open_session, query_one, typed_handler, zenoh_args_from
+from protocol.session import DropCounter, add_zenoh_args, query_one, session_scope, typed_handler, zenoh_args_from
 from vehicle_agent.agent import LaneFollower
 
 log = logging.getLogger("vehicle_agent")
@@ -48,45 +48,50 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        scope = session_scope(zenoh_args_from(args), wait_s=args.startup_timeout_s)
+        with scope as session:
+            return serve(session, args, stop)
+    except ConnectionError as exc:  # no hub within the startup timeout
+        log.error("%s", exc)
+        return 2
+
+
+def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
+    """Fetch the map and mission, then answer every scan with a command until stopped."""
     run, vid = args.run_id, args.vid
     drops = DropCounter()
     scans: queue.Queue[Scan] = queue.Queue()
+    deadline = time.monotonic() + args.startup_timeout_s
     try:
-        session = open_session(zenoh_args_from(args), wait_s=args.startup_timeout_s)
-    except ConnectionError as exc:
-        log.error("%s", exc)
+        _ask(session, keys.world_map(run), MapMsg, deadline)
+        mission = _ask(session, keys.mission(run, vid), Mission, deadline)
+    except TimeoutError as exc:
+        log.error("world never answered: %s", exc)
         return 2
-    with session:
-        deadline = time.monotonic() + args.startup_timeout_s
-        try:
-            _ask(session, keys.world_map(run), MapMsg, deadline)
-            mission = _ask(session, keys.mission(run, vid), Mission, deadline)
-        except TimeoutError as exc:
-            log.error("world never answered: %s", exc)
-            return 2
-        agent = LaneFollower(mission)
-        subs = [
-            session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
-            session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
-        ]
-        cmd_pub = session.declare_publisher(keys.cmd(run, vid))
-        token = session.liveliness().declare_token(keys.alive(run, vid))
-        last_scan = time.monotonic()
-        try:
-            while not stop.is_set():
-                try:
-                    scan = scans.get(timeout=0.2)
-                except queue.Empty:
-                    if time.monotonic() - last_scan > args.idle_exit_s:
-                        log.warning("no scan for %.0f s; exiting", args.idle_exit_s)
-                        break
-                    continue
-                last_scan = time.monotonic()
-                cmd_pub.put(encode(agent.run_step(scan)))
-        finally:
-            token.undeclare()
-            for sub in subs:
-                sub.undeclare()
+    agent = LaneFollower(mission)
+    subs = [
+        session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
+        session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
+    ]
+    cmd_pub = session.declare_publisher(keys.cmd(run, vid))
+    token = session.liveliness().declare_token(keys.alive(run, vid))
+    last_scan = time.monotonic()
+    try:
+        while not stop.is_set():
+            try:
+                scan = scans.get(timeout=0.2)
+            except queue.Empty:
+                if time.monotonic() - last_scan > args.idle_exit_s:
+                    log.warning("no scan for %.0f s; exiting", args.idle_exit_s)
+                    break
+                continue
+            last_scan = time.monotonic()
+            cmd_pub.put(encode(agent.run_step(scan)))
+    finally:
+        token.undeclare()
+        for sub in subs:
+            sub.undeclare()
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
     return 0

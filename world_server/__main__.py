@@ -16,7 +16,7 @@ import sys
 import time
 
 from deploy.procs import ProcessManager, ProcSpec
-from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, open_session, zenoh_args_from
+from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 from world_server import lidar
 from world_server.scenarios import ScenarioError, load_scenario_file, params_from_dict
 from world_server.server import WorldServer
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         z = ZenohArgs(listen=(DEFAULT_HUB,))
     lidar.warm_up(sim.lidar_cfg)
     agent_hub = list(z.listen[:1] or z.connect[:1])
-    with open_session(z) as session, ProcessManager() as procs:
+    with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
@@ -98,9 +98,9 @@ def main(argv: list[str] | None = None) -> int:
                 flags = ["--run-id", run_id, "--vid", str(vid)] + [f for ep in agent_hub for f in ("--connect", ep)]
                 procs.start(ProcSpec(f"agent{vid}", "vehicle_agent", tuple(flags)))
         result = server.serve()
-    print(summary(result))
-    if args.json:
-        print(json.dumps(result, allow_nan=False))
+        print(summary(result))
+        if args.json:
+            print(json.dumps(result, allow_nan=False), flush=True)
     return 0
 
 

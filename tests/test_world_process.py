@@ -164,3 +164,14 @@ def test_bad_flags_are_refused_naming_the_field(procs, flags, field):
     p = procs("world_server", *flags)
     out, err = p.communicate(timeout=30)
     assert p.returncode == 2 and f"{field}:" in err
+
+
+def test_realtime_mode_keeps_the_wall_clock(procs, hub, tap_on):
+    w = world(procs, hub, "--vehicles", "2", "--duration", "2", "--realtime")
+    tap_on()
+    for vid in (0, 1):
+        agent(procs, hub, vid)
+    result = outcome_of(w)
+    assert result["mode"] == "realtime" and result["ticks"] == 20
+    assert 1.9 < result["wall_s"] < 3.0  # 20 ticks of 100 ms on the wall clock
+    assert result["dead_agents"] == {}

@@ -52,10 +52,34 @@ def alive(run: str, vid: int | str) -> str:
     return f"{_run(run)}/alive/v/{_vid(vid)}"
 
 
+def net_ctrl_tx(run: str, vid: int | str) -> str:
+    """A vehicle's control message, into the channel proxy."""
+    return f"{_run(run)}/net/ctrl/tx/{_vid(vid)}"
+
+
+def net_ctrl_rx(run: str, vid: int | str) -> str:
+    """The control messages a vehicle heard, out of the channel proxy."""
+    return f"{_run(run)}/net/ctrl/rx/{_vid(vid)}"
+
+
+def net_data_tx(run: str, vid: int | str) -> str:
+    return f"{_run(run)}/net/data/tx/{_vid(vid)}"
+
+
+def net_data_rx(run: str, vid: int | str) -> str:
+    return f"{_run(run)}/net/data/rx/{_vid(vid)}"
+
+
+def net_stats(run: str) -> str:
+    return f"{_run(run)}/net/stats"
+
+
 def vid_of(key: str) -> int:
-    """The vehicle id in a per-vehicle key (``.../v/<vid>/...``)."""
+    """The vehicle id in a per-vehicle key (``.../v/<vid>/...`` or ``.../net/.../<vid>``)."""
     parts = str(key).split("/")
     try:
+        if "net" in parts:
+            return int(parts[-1])
         return int(parts[parts.index("v") + 1])
     except (ValueError, IndexError):
         raise ValueError(f"no vehicle id in key {key!r}") from None

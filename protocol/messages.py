@@ -149,3 +149,91 @@ class Outcome:
     tick: int
     t_sim_s: float
     result: dict[str, Any]
+
+
+# ------------------------------------------------------------------ V2V (channel proxy)
+
+
+@record
+class ObjectMap:
+    """A sender's object map (paper 4.1) as arrays: row t is object ``object_id[t]``,
+    column c is receiver ``receivers[c]`` (the other vehicles of the domain)."""
+
+    object_id: np.ndarray  # int64 (n,)
+    size_bytes: np.ndarray  # int64 (n,), what the object's payload will occupy on air
+    centroid_xy: np.ndarray  # float32 (n, 2), world frame
+    receivers: np.ndarray  # int64 (m,)
+    visibility: np.ndarray  # float32 (n, m), v_(i,k),j: 1 = j sees it itself
+    relevance: np.ndarray  # float32 (n, m), r_(i,k),j in [0, 1]
+
+
+@message(7)
+class ControlMsg:
+    """One vehicle's control message for a decision interval (paper 4.1)."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    pose: Pose
+    speed_mps: float
+    trajectory: np.ndarray  # float32 (p, 3): waypoints [x_m, y_m, t_sim_s], down-sampled
+    objects: ObjectMap
+    heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
+
+
+@message(8)
+class CtrlBundle:
+    """The control messages one receiver heard this interval (raw ``ControlMsg`` bytes);
+    its arrival closes the control phase for that receiver."""
+
+    tick: int
+    t_sim_s: float
+    receiver: int
+    messages: list[bytes]
+
+
+@record
+class Transmission:
+    """One object sent in the sender's slot: airtime starts ``start_s`` after the data
+    phase opens and lasts ``len(payload) * 8 / B``."""
+
+    object_id: int
+    start_s: float
+    payload: bytes
+
+
+@message(9)
+class DataTx:
+    """Everything a vehicle transmits on the data channel this interval (possibly nothing)."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    transmissions: list[Transmission]
+
+
+@record
+class Reception:
+    sender: int
+    object_id: int
+    rx_time_s: float  # end of airtime, from the start of the data phase
+    payload: bytes
+
+
+@message(10)
+class DataBundle:
+    """What one receiver decoded on the data channel this interval; closes its data phase."""
+
+    tick: int
+    t_sim_s: float
+    receiver: int
+    receptions: list[Reception]
+
+
+@message(11)
+class ChannelStats:
+    """The medium's statistics for one interval (bytes offered, delivered, lost, ...)."""
+
+    tick: int
+    t_sim_s: float
+    stats: dict[str, Any]

@@ -1,0 +1,213 @@
+"""Spatial reasoning (paper 5.1): visibility v_(i,k),j and relevance r_(i,k),j.
+
+Visibility: vehicle i traces rays from vehicle j's reported position toward each of
+its objects o_(i,k). A ray is blocked when it enters another object of i's view (i's
+own body and the map's static buildings included, j's own body excluded) before it
+reaches o_(i,k). ``visible_share`` is the fraction of rays across o_(i,k)'s angular
+extent that get through; an object beyond j's LiDAR range has share 0. The paper's
+boolean v is ``share >= VISIBLE_SHARE``.
+
+Relevance: j's shared trajectory (waypoints with times) and o_(i,k)'s extrapolated
+trajectory (constant velocity) are sampled over a horizon; each body is three circles
+along its heading. r = 1 when they come within ``safety_m`` at the same time (boolean,
+as in the paper's evaluation), or 1 / (1 + time to that moment) in the TTC form.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+VISIBLE_SHARE = 0.5
+RAYS_PER_OBJECT = 9
+HORIZON_S = 6.0
+STEP_S = 0.25
+SAFETY_M = 1.0
+
+
+@njit(cache=True)
+def _ray_rect(px, py, dx, dy, corners):
+    """Distance along the ray (p, d) to where it enters a convex quad; inf if it misses."""
+    best = np.inf
+    for e in range(4):
+        ax, ay = corners[e, 0], corners[e, 1]
+        bx, by = corners[(e + 1) % 4, 0], corners[(e + 1) % 4, 1]
+        ex, ey = bx - ax, by - ay
+        den = dx * ey - dy * ex
+        if abs(den) < 1e-12:
+            continue
+        wx, wy = ax - px, ay - py
+        t = (wx * ey - wy * ex) / den
+        u = (wx * dy - wy * dx) / den
+        if t >= 0.0 and 0.0 <= u <= 1.0 and t < best:
+            best = t
+    return best
+
+
+@njit(cache=True)
+def _inside(px, py, corners):
+    sign = 0
+    for e in range(4):
+        ax, ay = corners[e, 0], corners[e, 1]
+        bx, by = corners[(e + 1) % 4, 0], corners[(e + 1) % 4, 1]
+        cross = (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+        s = 1 if cross > 0 else -1
+        if sign == 0:
+            sign = s
+        elif s != sign:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self_target, n_rays):
+    J, K, O = viewers.shape[0], targets.shape[0], occluders.shape[0]
+    share = np.zeros((J, K))
+    occ_lo = np.empty(O)
+    occ_hi = np.empty(O)
+    occ_near = np.empty(O)
+    skip = np.zeros(O, dtype=np.bool_)
+    for j in range(J):
+        px, py = viewers[j, 0], viewers[j, 1]
+        own = target_as_occluder[self_target[j]] if self_target[j] >= 0 else -1
+        for o in range(O):
+            # j's own body (as i sees it) does not hide anything from j
+            skip[o] = o == own or _inside(px, py, occluders[o])
+            cx = 0.25 * (occluders[o, 0, 0] + occluders[o, 1, 0] + occluders[o, 2, 0] + occluders[o, 3, 0])
+            cy = 0.25 * (occluders[o, 0, 1] + occluders[o, 1, 1] + occluders[o, 2, 1] + occluders[o, 3, 1])
+            base = np.arctan2(cy - py, cx - px)
+            lo, hi, near = np.inf, -np.inf, np.inf
+            for c in range(4):
+                a = np.arctan2(occluders[o, c, 1] - py, occluders[o, c, 0] - px) - base
+                a = (a + np.pi) % (2 * np.pi) - np.pi
+                lo, hi = min(lo, a), max(hi, a)
+                near = min(near, np.hypot(occluders[o, c, 0] - px, occluders[o, c, 1] - py))
+            occ_lo[o], occ_hi[o], occ_near[o] = lo + base, hi + base, near
+        for k in range(K):
+            tk = targets[k]
+            cx = 0.25 * (tk[0, 0] + tk[1, 0] + tk[2, 0] + tk[3, 0])
+            cy = 0.25 * (tk[0, 1] + tk[1, 1] + tk[2, 1] + tk[3, 1])
+            if k == self_target[j] or _inside(px, py, tk):
+                share[j, k] = 1.0  # j itself: nothing to send it
+                continue
+            if np.hypot(cx - px, cy - py) > ranges[j]:
+                continue
+            base = np.arctan2(cy - py, cx - px)
+            lo, hi = np.inf, -np.inf
+            for c in range(4):
+                a = np.arctan2(tk[c, 1] - py, tk[c, 0] - px) - base
+                a = (a + np.pi) % (2 * np.pi) - np.pi
+                lo, hi = min(lo, a), max(hi, a)
+            seen = 0
+            for r in range(n_rays):
+                ang = base + lo + (hi - lo) * (r + 0.5) / n_rays
+                dx, dy = np.cos(ang), np.sin(ang)
+                t_target = _ray_rect(px, py, dx, dy, tk)
+                if not np.isfinite(t_target):
+                    t_target = np.hypot(cx - px, cy - py)
+                blocked = False
+                for o in range(O):
+                    if skip[o] or o == target_as_occluder[k] or occ_near[o] >= t_target:
+                        continue
+                    rel = (ang - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    if rel < 0.0 or rel > occ_hi[o] - occ_lo[o]:
+                        continue
+                    if _ray_rect(px, py, dx, dy, occluders[o]) < t_target:
+                        blocked = True
+                        break
+                if not blocked:
+                    seen += 1
+            share[j, k] = seen / n_rays
+    return share
+
+
+def visible_share(viewers_xy: np.ndarray, ranges_m: np.ndarray, targets: np.ndarray, occluders: np.ndarray,
+                  target_as_occluder: np.ndarray, self_target: np.ndarray | None = None,
+                  n_rays: int = RAYS_PER_OBJECT) -> np.ndarray:
+    """(J, K) share of each target's angular extent that viewer j sees unobstructed.
+
+    ``targets`` (K, 4, 2) and ``occluders`` (O, 4, 2) are footprints (quads);
+    ``target_as_occluder[k]`` is the occluder index of target k itself (-1 if none);
+    ``self_target[j]`` is the target that is vehicle j's own body (-1 if none): j
+    "sees" it (share 1) and it hides nothing from j.
+    """
+    if self_target is None:
+        self_target = np.full(len(viewers_xy), -1)
+    return _visible_share(np.ascontiguousarray(viewers_xy, dtype=np.float64),
+                          np.ascontiguousarray(ranges_m, dtype=np.float64),
+                          np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 4, 2),
+                          np.ascontiguousarray(occluders, dtype=np.float64).reshape(-1, 4, 2),
+                          np.ascontiguousarray(target_as_occluder, dtype=np.int64),
+                          np.ascontiguousarray(self_target, dtype=np.int64), n_rays)
+
+
+def match_vehicles(viewers_xy: np.ndarray, centroids: np.ndarray, gate_m: float = 3.0) -> np.ndarray:
+    """For each viewer j, the target whose centroid is nearest its reported position
+    within ``gate_m`` (that object is j itself), or -1."""
+    if len(viewers_xy) == 0 or len(centroids) == 0:
+        return np.full(len(viewers_xy), -1, dtype=np.int64)
+    d = np.linalg.norm(viewers_xy[:, None, :] - centroids[None, :, :2], axis=2)
+    nearest = np.argmin(d, axis=1)
+    return np.where(d[np.arange(len(viewers_xy)), nearest] <= gate_m, nearest, -1).astype(np.int64)
+
+
+def visibility(share: np.ndarray) -> np.ndarray:
+    """The paper's boolean v from the visible share."""
+    return (share >= VISIBLE_SHARE).astype(np.float32)
+
+
+def _circles(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Three circle centres along each body: (..., 3, 2)."""
+    off = np.maximum(length - width, 0.0)[..., None] / 2 * np.array([-1.0, 0.0, 1.0])
+    d = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    return xy[..., None, :] + off[..., None] * d[..., None, :]
+
+
+def sample_trajectory(waypoints: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and headings at ``times`` along waypoints [x, y, t]; holds the last point."""
+    t = waypoints[:, 2]
+    x = np.interp(times, t, waypoints[:, 0])
+    y = np.interp(times, t, waypoints[:, 1])
+    seg = np.clip(np.searchsorted(t, times, side="right") - 1, 0, max(len(t) - 2, 0))
+    if len(waypoints) >= 2:
+        d = waypoints[seg + 1, :2] - waypoints[seg, :2]
+        heading = np.arctan2(d[:, 1], d[:, 0])
+    else:
+        heading = np.zeros(len(times))
+    return np.stack([x, y], axis=1), heading
+
+
+def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
+              obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
+              step_s: float = STEP_S, safety_m: float = SAFETY_M) -> np.ndarray:
+    """(J, K) relevance of each object to each vehicle's trajectory.
+
+    ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s]; ``dims_j`` (J, 2) length,
+    width; objects: centroid (K, 2), velocity (K, 2), dims (K, 2) length, width.
+    """
+    J, K = len(trajectories), len(obj_xy)
+    if J == 0 or K == 0:
+        return np.zeros((J, K), dtype=np.float32)
+    times = t_now_s + np.arange(0.0, horizon_s + 1e-9, step_s)
+    pos_j = np.empty((J, len(times), 2))
+    head_j = np.empty((J, len(times)))
+    for j, wp in enumerate(trajectories):
+        pos_j[j], head_j[j] = sample_trajectory(wp, times)
+    circles_j = _circles(pos_j, head_j, dims_j[:, 0, None], dims_j[:, 1, None])  # (J, T, 3, 2)
+    pos_k = obj_xy[:, None, :] + obj_vel[:, None, :] * (times - t_now_s)[None, :, None]  # (K, T, 2)
+    speed = np.hypot(obj_vel[:, 0], obj_vel[:, 1])
+    head_k = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)
+    circles_k = _circles(pos_k, np.broadcast_to(head_k[:, None], pos_k.shape[:2]),
+                         obj_dims[:, 0, None], obj_dims[:, 1, None])  # (K, T, 3, 2)
+    diff = circles_j[:, None, :, :, None, :] - circles_k[None, :, :, None, :, :]  # (J, K, T, 3, 3, 2)
+    gap = np.sqrt((diff**2).sum(-1)).min(axis=(-1, -2))  # (J, K, T)
+    gap -= dims_j[:, 1, None, None] / 2 + obj_dims[None, :, 1, None] / 2
+    close = gap < safety_m
+    hit = close.any(axis=2)
+    if mode == "bool":
+        return hit.astype(np.float32)
+    if mode == "ttc":
+        first = np.argmax(close, axis=2)
+        ttc = times[first] - t_now_s
+        return np.where(hit, 1.0 / (1.0 + ttc), 0.0).astype(np.float32)
+    raise ValueError(f"relevance mode {mode!r}: 'bool' or 'ttc'")

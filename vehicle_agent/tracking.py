@@ -1,0 +1,102 @@
+"""Tracking objects across ticks in the world frame (the agent knows its pose exactly).
+
+Nearest-neighbour association with gating on the predicted position, then an
+alpha-beta filter on the centroid for velocity. A partial view makes a centroid jump
+as the visible faces change, so velocity is smoothed and very small speeds are clamped
+to zero (a parked car should not drift). Ids are stable for as long as a track is
+matched; a track unmatched for ``max_missed`` ticks is dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vehicle_agent.perception import DetectedObject
+
+GATE_M = 2.5
+ALPHA, BETA = 0.6, 0.25
+STILL_MPS = 0.4
+
+
+@dataclass(slots=True)
+class Track:
+    track_id: int
+    xy: np.ndarray  # filtered centroid, world frame
+    velocity: np.ndarray  # m/s, world frame
+    t_sim_s: float
+    detection: DetectedObject
+    hits: int = 1
+    missed: int = 0
+
+    @property
+    def speed_mps(self) -> float:
+        return float(np.hypot(*self.velocity))
+
+    @property
+    def heading_rad(self) -> float:
+        if self.speed_mps > STILL_MPS:
+            return float(np.arctan2(self.velocity[1], self.velocity[0]))
+        return self.detection.yaw_rad
+
+    def predict(self, t_sim_s: float) -> np.ndarray:
+        return self.xy + self.velocity * (t_sim_s - self.t_sim_s)
+
+
+@dataclass
+class Tracker:
+    max_missed: int = 3
+    tracks: list[Track] = field(default_factory=list)
+    _next_id: int = 0
+
+    def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
+        """Associate this tick's detections; returns the tracks seen this tick, by id."""
+        centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
+        predicted = np.array([tr.predict(t_sim_s) for tr in self.tracks]).reshape(-1, 2)
+        pairs = _associate(predicted, centroids, GATE_M)
+        matched_tracks, matched_dets = set(), set()
+        for ti, di in pairs:
+            self._correct(self.tracks[ti], detections[di], t_sim_s)
+            matched_tracks.add(ti)
+            matched_dets.add(di)
+        for ti, tr in enumerate(self.tracks):
+            if ti not in matched_tracks:
+                tr.missed += 1
+        self.tracks = [tr for tr in self.tracks if tr.missed <= self.max_missed]
+        for di, det in enumerate(detections):
+            if di not in matched_dets:
+                self.tracks.append(Track(self._next_id, det.centroid[:2].copy(), np.zeros(2), t_sim_s, det))
+                self._next_id += 1
+        return sorted((tr for tr in self.tracks if tr.missed == 0), key=lambda tr: tr.track_id)
+
+    @staticmethod
+    def _correct(tr: Track, det: DetectedObject, t_sim_s: float) -> None:
+        dt = max(t_sim_s - tr.t_sim_s, 1e-3)
+        predicted = tr.xy + tr.velocity * dt
+        residual = det.centroid[:2] - predicted
+        tr.xy = predicted + ALPHA * residual
+        tr.velocity = tr.velocity + (BETA / dt) * residual
+        if np.hypot(*tr.velocity) < STILL_MPS:
+            tr.velocity = np.zeros(2)
+        tr.t_sim_s = t_sim_s
+        tr.detection = det
+        tr.hits += 1
+        tr.missed = 0
+
+
+def _associate(a: np.ndarray, b: np.ndarray, gate: float) -> list[tuple[int, int]]:
+    """Greedy nearest pairs within ``gate``, closest first (ties by index)."""
+    if len(a) == 0 or len(b) == 0:
+        return []
+    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
+    ii, jj = np.nonzero(d <= gate)
+    order = np.lexsort((jj, ii, d[ii, jj]))
+    used_a, used_b, pairs = set(), set(), []
+    for k in order:
+        i, j = int(ii[k]), int(jj[k])
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    return pairs

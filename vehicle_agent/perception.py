@@ -25,7 +25,7 @@ class GridSpec:
     cell_m: float = 0.5
     half_extent_m: float = 70.0  # the grid spans +-70 m around the vehicle (the paper's authors' choice)
     ground_clear_m: float = 0.25  # returns higher than this above the ground are obstacles
-    reach_cells: int = 2  # above-ground cells this close (Chebyshev) belong to one object
+    reach_cells: int = 3  # above-ground cells this close (Chebyshev) belong to one object
 
     @property
     def cells(self) -> int:
@@ -98,8 +98,8 @@ def _bin(world, i0, j0, cell, n, clear, state, cell_idx):
 @njit(cache=True)
 def label_components(mask, reach):
     """Components of a boolean grid where cells up to ``reach`` cells apart (Chebyshev)
-    connect: reach 1 is 8-connectivity; reach 2 also bridges a one-cell gap, which the
-    rings of a LiDAR leave on surfaces seen at a grazing angle. Labels 1..k, and k."""
+    connect: reach 1 is 8-connectivity; larger reaches bridge the gaps a LiDAR's rings
+    and columns leave on surfaces seen at a grazing angle. Labels 1..k, and k."""
     ny, nx = mask.shape
     labels = np.zeros((ny, nx), dtype=np.int32)
     stack = np.empty(ny * nx, dtype=np.int64)
@@ -178,13 +178,21 @@ def build_grid(world: np.ndarray, center_xy: tuple[float, float], spec: GridSpec
     return grid, cell_idx
 
 
-def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray) -> list[DetectedObject]:
-    """Connected ABOVE cells on the drivable area, each with its points and extent."""
+def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
+                    sensor_xy: tuple[float, float] | None = None) -> list[DetectedObject]:
+    """Connected ABOVE cells on the drivable area, each with its points and extent.
+
+    With ``sensor_xy``, a component that lies in another's shadow just behind it, with
+    nothing but unseen cells in between, is merged into it: a roof ring seen beyond a
+    car's rear face is the same car.
+    """
     mask = (grid.state == ABOVE) & grid.drivable
     labels, k = label_components(mask, grid.spec.reach_cells)
     if k == 0:
         return []
     n = grid.state.shape[0]
+    if sensor_xy is not None and k > 1:
+        labels, k = _merge_shadowed(labels, k, grid, sensor_xy)
     above = (cell_idx >= 0) & (world[:, 2] > grid.spec.ground_clear_m)
     point_label = np.zeros(len(world), dtype=np.int32)
     point_label[above] = labels.ravel()[cell_idx[above]]
@@ -203,6 +211,52 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray) -> list
         cells = np.stack([flat % n + grid.i0, flat // n + grid.j0], axis=1).astype(np.int64)
         objects.append(_describe(pts.astype(np.float32), cells))
     return objects
+
+
+SHADOW_MERGE_M = 5.0  # at most this far behind the nearer part
+
+
+def _merge_shadowed(labels: np.ndarray, k: int, grid: Grid, sensor_xy: tuple[float, float]) -> tuple[np.ndarray, int]:
+    rows, cols = np.nonzero(labels)
+    lab = labels[rows, cols] - 1
+    xy = grid.cell_centers(rows, cols) - np.asarray(sensor_xy)
+    rng = np.hypot(xy[:, 0], xy[:, 1])
+    ang = np.arctan2(xy[:, 1], xy[:, 0])
+    mean_dir = np.zeros((k, 2))
+    np.add.at(mean_dir, lab, np.stack([np.cos(ang), np.sin(ang)], axis=1))
+    center_ang = np.arctan2(mean_dir[:, 1], mean_dir[:, 0])
+    rel = (ang - center_ang[lab] + np.pi) % (2 * np.pi) - np.pi
+    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
+    np.minimum.at(lo, lab, rel)
+    np.maximum.at(hi, lab, rel)
+    r_min, r_max = np.full(k, np.inf), np.zeros(k)
+    np.minimum.at(r_min, lab, rng)
+    np.maximum.at(r_max, lab, rng)
+    half_cell = grid.spec.cell_m / np.maximum(r_min, 1.0)
+    # B behind A: B's centre direction inside A's angular extent, B starting just past A's far side
+    d_ang = (center_ang[None, :] - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi  # [a, b]
+    gap = r_min[None, :] - r_max[:, None]
+    cand = ((d_ang >= lo[:, None] - half_cell[:, None]) & (d_ang <= hi[:, None] + half_cell[:, None])
+            & (gap > 0) & (gap < SHADOW_MERGE_M))
+    parent = np.arange(k)
+    for a, b in zip(*np.nonzero(cand)):
+        steps = np.arange(r_max[a] + grid.spec.cell_m, r_min[b] - grid.spec.cell_m / 2, grid.spec.cell_m / 2)
+        probe = np.asarray(sensor_xy) + steps[:, None] * np.array([np.cos(center_ang[b]), np.sin(center_ang[b])])
+        rc = grid.cell_of(probe)
+        if np.all(grid.state[rc[:, 0], rc[:, 1]] == EMPTY):
+            ra, rb = _root(parent, a), _root(parent, b)
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([_root(parent, i) for i in range(k)])
+    _, new = np.unique(roots, return_inverse=True)
+    merged = np.zeros_like(labels)
+    merged[rows, cols] = new[lab] + 1
+    return merged, int(new.max()) + 1
+
+
+def _root(parent: np.ndarray, i: int) -> int:
+    while parent[i] != i:
+        i = parent[i]
+    return int(i)
 
 
 def _describe(pts: np.ndarray, cells: np.ndarray) -> DetectedObject:

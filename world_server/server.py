@@ -23,7 +23,7 @@ import zenoh
 
 from protocol import keys
 from protocol.codec import encode
-from protocol.messages import Command, Mission, Outcome, Scan, Tick
+from protocol.messages import Command, Outcome, Scan, Tick
 from protocol.session import DropCounter, big_publisher, typed_handler
 from world_server.sim import Simulation
 
@@ -62,7 +62,7 @@ class WorldServer:
     def _declare(self) -> None:
         s, run = self.session, self.run_id
         map_bytes = encode(self.sim.scenario.roadmap.to_msg())
-        missions = {a.vid: encode(self._mission(a)) for a in self.sim.scenario.connected()}
+        missions = {vid: encode(self.sim.mission(vid)) for vid in self.sim.connected_vids}
 
         def on_map(query: zenoh.Query) -> None:
             query.reply(keys.world_map(run), map_bytes)
@@ -84,10 +84,6 @@ class WorldServer:
         self._tick_pub = s.declare_publisher(keys.world_tick(run))
         self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
         self._entities += [self._tick_pub, *self._scan_pubs.values()]
-
-    def _mission(self, actor) -> Mission:
-        return Mission(0, 0.0, actor.vid, actor.role, actor.route, actor.speed_mps, actor.spec,
-                       self.sim.lidar_cfg, self.sim.decision_interval_s)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:

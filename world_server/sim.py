@@ -8,13 +8,14 @@ the judge watches. Deterministic for a scenario and seed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import LidarConfig, LightState, Pose
+from protocol.messages import LidarConfig, LightState, Mission, Pose
 from world_server import driver, lidar
 from world_server.judge import Judge
 from world_server.physics import Physics
@@ -64,6 +65,12 @@ class Simulation:
     @property
     def connected_vids(self) -> list[int]:
         return [a.vid for a in self.scenario.connected()]
+
+    def mission(self, vid: int) -> Mission:
+        """What connected vehicle ``vid`` knows about itself: role, route, body, sensor."""
+        a = self.scenario.actors[vid]
+        lidar_cfg = dataclasses.replace(self.lidar_cfg, mount_height_m=a.mount_height_m)
+        return Mission(0, 0.0, vid, a.role, a.route, a.speed_mps, a.spec, lidar_cfg, self.decision_interval_s)
 
     def lights(self) -> list[LightState]:
         return [LightState(i, s) for i, s in sorted(self.scenario.lights.items())]

@@ -1,0 +1,172 @@
+"""The agent's data plane: hand-derived unit cases, then real scans from the world."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.codec import MalformedMessage
+from protocol.messages import LidarConfig, Pose
+from vehicle_agent.frames import sensor_to_world, world_to_sensor
+from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
+from vehicle_agent.perception import ABOVE, DrivableRaster, GridSpec, build_grid, extract_objects
+from vehicle_agent.spatial import relevance, visibility, visible_share
+from vehicle_agent.tracking import Tracker
+from world_server import lidar
+from world_server.geometry import box_corners
+
+OPEN_FIELD = [np.array([[-200.0, -200.0], [200.0, -200.0], [200.0, 200.0], [-200.0, 200.0]])]
+SENSOR = Pose(0.0, 0.0, 0.0)
+
+
+def perceive(boxes, pose=SENSOR, mount=1.9, drivable=OPEN_FIELD):
+    """Scan ``boxes`` (world frame) from ``pose`` and extract objects."""
+    pts, _ = lidar.scan(np.asarray(boxes, dtype=float), np.array([pose.x_m, pose.y_m, pose.yaw_rad]), mount,
+                        LidarConfig())
+    world = sensor_to_world(pts, pose, mount)
+    grid, cell_idx = build_grid(world, (pose.x_m, pose.y_m), GridSpec(), DrivableRaster(drivable, 0.5))
+    return grid, extract_objects(world, grid, cell_idx, (pose.x_m, pose.y_m))
+
+
+def test_a_wall_is_one_object_with_its_extent():
+    # a 10 m x 0.4 m wall, 2 m tall, 15 m ahead, facing the sensor: its near face spans y in [-5, 5]
+    _, objs = perceive([[15.2, 0.0, np.pi / 2, 10.0, 0.4, 2.0]])
+    assert len(objs) == 1
+    wall = objs[0]
+    assert wall.length_m == pytest.approx(10.0, abs=0.3)  # the visible face, minus ray spacing
+    assert abs(np.cos(wall.yaw_rad)) < 0.05  # its long side runs along y
+    assert wall.centroid[0] == pytest.approx(15.0, abs=0.05)  # points on the near face x = 15.0
+    assert wall.centroid[1] == pytest.approx(0.0, abs=0.2)
+
+
+def test_two_cars_3_m_apart_are_two_objects():
+    # side by side, centres 4.8 m apart: a 3 m gap between their flanks
+    _, objs = perceive([[12.0, 2.4, 0.0, 4.5, 1.8, 1.5], [12.0, -2.4, 0.0, 4.5, 1.8, 1.5]])
+    assert len(objs) == 2
+    assert sorted(round(o.centroid[1]) for o in objs) == [-2, 2]
+
+
+def test_cells_off_the_drivable_area_are_ignored():
+    road = [np.array([[-100.0, -4.0], [100.0, -4.0], [100.0, 4.0], [-100.0, 4.0]])]
+    _, objs = perceive([[15.0, 0.0, 0.0, 4.5, 1.8, 1.5], [15.0, 10.0, 0.0, 4.5, 1.8, 1.5]], drivable=road)
+    assert len(objs) == 1 and objs[0].centroid[1] == pytest.approx(0.0, abs=0.5)
+
+
+def test_empty_cells_behind_an_object_are_occluded_area():
+    grid, _ = perceive([[10.0, 0.0, 0.0, 4.5, 3.0, 3.0]])
+    occ = grid.occluded()
+    rows, cols = grid.cell_of(np.array([[20.0, 0.0], [-10.0, 0.0]])).T
+    assert occ[rows[0], cols[0]]  # behind the box
+    assert not occ[rows[1], cols[1]]  # open ground behind the sensor
+
+
+def test_tracking_keeps_ids_and_estimates_velocity():
+    tracker = Tracker()
+    ids, vel = [], None
+    for k in range(10):
+        x = 20.0 + 1.0 * k  # 10 m/s along x, 0.1 s per tick
+        _, objs = perceive([[x, 3.5, 0.0, 4.5, 1.8, 1.5], [15.0, -6.0, 0.0, 4.5, 1.8, 1.5]])
+        tracks = tracker.update(objs, 0.1 * k)
+        ids.append([t.track_id for t in tracks])
+        vel = {t.track_id: t.velocity for t in tracks}
+    assert all(i == ids[0] for i in ids) and len(ids[0]) == 2
+    moving = max(vel.values(), key=lambda v: np.hypot(*v))
+    assert moving == pytest.approx([10.0, 0.0], abs=1.0)
+    assert min(np.hypot(*v) for v in vel.values()) == 0.0  # the parked car does not drift
+
+
+def _quad(cx, cy, yaw, length, width):
+    return box_corners(cx, cy, yaw, length, width)
+
+
+def test_a_box_behind_a_truck_is_hidden_from_j_and_seen_from_a_clear_line():
+    truck, car = _quad(0.0, 10.0, 0.0, 9.0, 2.5), _quad(0.0, 20.0, 0.0, 4.5, 1.8)
+    quads = np.stack([truck, car])
+    # j at the origin looks along +y: the truck (|x| <= 4.5) covers the car (|x| <= 2.25) entirely
+    # j2 at (20, 20) looks along -x at the car: nothing in between
+    share = visible_share(np.array([[0.0, 0.0], [20.0, 20.0]]), np.array([100.0, 100.0]), quads, quads,
+                          np.array([0, 1]))
+    assert share[0].tolist() == [1.0, 0.0]
+    assert share[1].tolist() == [1.0, 1.0]
+    assert visibility(share)[:, 1].tolist() == [0.0, 1.0]
+
+
+def test_an_object_beyond_js_range_is_invisible():
+    car = _quad(0.0, 0.0, 0.0, 4.5, 1.8)[None]
+    share = visible_share(np.array([[0.0, 99.0], [0.0, 101.0]]), np.array([100.0, 100.0]), car, car, np.array([0]))
+    assert share[:, 0].tolist() == [1.0, 0.0]
+
+
+def test_half_hidden_object_has_half_share():
+    # occluder covers exactly the left half of the target's angular extent
+    target = _quad(0.0, 20.0, 0.0, 4.0, 1.0)
+    blocker = _quad(-1.0, 10.0, 0.0, 1.0, 0.5)  # spans x in [-1.5, -0.5] at y = 10: angles of x in [-3, -1] at y=20
+    share = visible_share(np.array([[0.0, 0.0]]), np.array([100.0]), target[None], np.stack([target, blocker]),
+                          np.array([0]), n_rays=100)
+    # target spans x in [-2, 2] at y = 19.5..20.5; the blocker shadows x in [-2, -0.98] of it: ~25% hidden
+    assert share[0, 0] == pytest.approx(0.75, abs=0.03)
+
+
+def test_crossing_trajectories_are_relevant_parallel_ones_are_not():
+    t = np.arange(0.0, 7.0, 1.0)
+    # j drives north along x = 0 at 5 m/s from y = -20: at the origin at t = 4 s
+    j_traj = np.stack([np.zeros_like(t), -20.0 + 5.0 * t, t], axis=1)
+    # an object driving west along y = 0 at 5 m/s from x = 20: also at the origin at t = 4 s
+    crossing = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[20.0, 0.0]]), np.array([[-5.0, 0.0]]),
+                         np.array([[4.5, 1.8]]), 0.0)
+    # an object in the next lane (3.5 m to the east) at the same speed and direction
+    parallel = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[3.5, -20.0]]), np.array([[0.0, 5.0]]),
+                         np.array([[4.5, 1.8]]), 0.0)
+    assert crossing[0, 0] == 1.0 and parallel[0, 0] == 0.0
+    # TTC form: bodies (three circles, r = 0.9) come within 1 m of each other before t = 4 s
+    ttc = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[20.0, 0.0]]), np.array([[-5.0, 0.0]]),
+                    np.array([[4.5, 1.8]]), 0.0, mode="ttc")
+    assert 1 / (1 + 4.0) < ttc[0, 0] < 1 / (1 + 3.0)
+
+
+def test_transform_round_trip_is_exact():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-50, 50, (1000, 3))
+    a, b = Pose(12.5, -3.0, 0.7), Pose(-40.0, 8.0, -2.9)
+    back = world_to_sensor(sensor_to_world(pts, a, 1.9), a, 1.9)
+    assert np.allclose(back, pts, atol=1e-9)
+    # V_r = T_r^-1 T_s V_s then back again
+    v_r = world_to_sensor(sensor_to_world(pts, a, 1.9), b, 3.8)
+    assert np.allclose(world_to_sensor(sensor_to_world(v_r, b, 3.8), a, 1.9), pts, atol=1e-9)
+
+
+def test_payload_encoding_error_is_within_the_stated_bound():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-3, 3, (500, 3)).astype(np.float32) + np.float32([20, -5, -1])
+    centroid = pts.mean(axis=0)
+    obj = ObjectPayload(3, 17, 42, 4.2, Pose(1.0, 2.0, 0.3), 1.9, centroid, np.float32([4.0, -1.0]), pts)
+    raw = encode_object(obj)
+    assert len(raw) == payload_size(500) == 64 + 6 * 500
+    back = decode_object(raw)
+    assert (back.sender, back.object_id, back.tick) == (3, 17, 42)
+    err = np.linalg.norm(back.points_sensor - pts, axis=1).max()
+    assert err <= MAX_ERROR_M + 1e-6  # 0.5 cm per axis
+    with pytest.raises(MalformedMessage):
+        decode_object(raw[:-1])
+    with pytest.raises(MalformedMessage):
+        decode_object(b"XXXX" + raw[4:])
+
+
+def test_received_points_land_in_the_receivers_grid():
+    from vehicle_agent.fusion import ReceivedStore, fuse
+
+    # the sender at (0, 0) sees a car at (10, 0); the receiver at (30, 30) fuses it
+    pts, labels = lidar.scan(np.array([[10.0, 0.0, 0.0, 4.5, 1.8, 1.5]]), np.zeros(3), 1.9, LidarConfig())
+    car = pts[labels == 0]
+    obj = ObjectPayload(1, 0, 5, 0.5, SENSOR, 1.9, car.mean(axis=0), np.float32([2.0, 0.0]), car)
+    store = ReceivedStore()
+    store.add(decode_object(encode_object(obj)))
+    receiver = Pose(30.0, 30.0, 1.0)
+    world = sensor_to_world(np.zeros((1, 3), np.float32), receiver, 1.9)
+    grid, _ = build_grid(world, (30.0, 30.0), GridSpec(), DrivableRaster(OPEN_FIELD, 0.5))
+    fused = fuse(grid, store.current(1.0, {(1, 0)}))  # 0.5 s later: moved 1 m along +x
+    rows, cols = np.nonzero(fused.received)
+    centers = grid.cell_centers(rows, cols)
+    assert fused.state[rows, cols].tolist() == [ABOVE] * len(rows)
+    assert centers[:, 0].min() == pytest.approx(7.75 + 1.0, abs=0.5)  # near face x = 7.75, plus 1 m
+    assert np.abs(centers[:, 1]).max() <= 0.9 + 0.5

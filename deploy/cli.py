@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("lidar", "scheduler")
+BENCHES = ("lidar", "perception", "scheduler")
 
 USAGE = """usage: autocast <command> [args]
 

@@ -154,9 +154,11 @@ class DataPlane:
                              for t in tracks]).reshape(-1, 2)
             vel = np.array([t.velocity for t in tracks], dtype=np.float64).reshape(-1, 2)
             rel = relevance([nb.trajectory for nb in receivers], np.tile(DEFAULT_DIMS, (len(receivers), 1)),
-                            centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode)
+                            centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode,
+                            obj_heading=np.array([t.heading_rad for t in tracks], dtype=np.float64))
         return ObjectMap(ids, sizes, centroids.astype(np.float32),
-                         np.array([nb.vid for nb in receivers], dtype=np.int64), vis, rel)
+                         np.array([nb.vid for nb in receivers], dtype=np.int64),
+                         np.ascontiguousarray(vis.T), np.ascontiguousarray(rel.T))
 
     def control_message(self, view: View, scan: Scan, trajectory: np.ndarray, heard: list[int]) -> ControlMsg:
         neighbors = self.neighbors.current(view.t_sim_s, exclude=self.mission.vid)

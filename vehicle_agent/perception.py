@@ -202,14 +202,36 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     cell_label = labels.ravel()
     cell_order = np.argsort(cell_label, kind="stable")
     cell_bounds = np.searchsorted(cell_label[cell_order], np.arange(1, k + 2))
+    # per-object statistics at once, over the points sorted by label (no per-point loop)
+    pts = world[order]
+    counts = np.diff(bounds)
+    starts = bounds[:-1]
+    nonempty = counts > 0
+    lab_of_point = np.repeat(np.arange(k), counts)
+    xy = pts[:, :2]
+    mean = np.add.reduceat(xy, starts[nonempty], axis=0) / counts[nonempty, None]
+    d = xy - mean[np.cumsum(nonempty)[lab_of_point] - 1]
+    sxx = np.add.reduceat(d[:, 0] * d[:, 0], starts[nonempty])
+    syy = np.add.reduceat(d[:, 1] * d[:, 1], starts[nonempty])
+    sxy = np.add.reduceat(d[:, 0] * d[:, 1], starts[nonempty])
+    yaw = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # principal axis of the 2x2 covariance
+    idx = np.cumsum(nonempty)[lab_of_point] - 1
+    c, s_ = np.cos(yaw)[idx], np.sin(yaw)[idx]
+    u = d[:, 0] * c + d[:, 1] * s_
+    v = -d[:, 0] * s_ + d[:, 1] * c
+    u_lo, u_hi = np.minimum.reduceat(u, starts[nonempty]), np.maximum.reduceat(u, starts[nonempty])
+    v_lo, v_hi = np.minimum.reduceat(v, starts[nonempty]), np.maximum.reduceat(v, starts[nonempty])
+    z_mean = np.add.reduceat(pts[:, 2], starts[nonempty]) / counts[nonempty]
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    center = (mean + np.stack([cy, sy], 1) * ((u_hi + u_lo) / 2)[:, None]
+              + np.stack([-sy, cy], 1) * ((v_hi + v_lo) / 2)[:, None])
     objects = []
-    for lab in range(k):
-        pts = world[order[bounds[lab]:bounds[lab + 1]]]
-        if len(pts) == 0:
-            continue
+    for o, lab in enumerate(np.flatnonzero(nonempty)):
         flat = cell_order[cell_bounds[lab]:cell_bounds[lab + 1]]
         cells = np.stack([flat % n + grid.i0, flat // n + grid.j0], axis=1).astype(np.int64)
-        objects.append(_describe(pts.astype(np.float32), cells))
+        objects.append(DetectedObject(pts[bounds[lab]:bounds[lab + 1]].astype(np.float32), cells,
+                                      np.array([center[o, 0], center[o, 1], z_mean[o]]), float(yaw[o]),
+                                      float(u_hi[o] - u_lo[o]), float(v_hi[o] - v_lo[o])))
     return objects
 
 
@@ -257,22 +279,3 @@ def _root(parent: np.ndarray, i: int) -> int:
     while parent[i] != i:
         i = parent[i]
     return int(i)
-
-
-def _describe(pts: np.ndarray, cells: np.ndarray) -> DetectedObject:
-    """Centroid, and the oriented extent along the principal axis of the points."""
-    xy = pts[:, :2].astype(np.float64)
-    mean = xy.mean(axis=0)
-    if len(xy) >= 3:
-        cov = np.cov((xy - mean).T)
-        evals, evecs = np.linalg.eigh(cov)
-        axis = evecs[:, int(np.argmax(evals))]
-    else:
-        axis = np.array([1.0, 0.0])
-    yaw = float(np.arctan2(axis[1], axis[0]))
-    c, s = np.cos(yaw), np.sin(yaw)
-    u = (xy - mean) @ np.array([c, s])
-    v = (xy - mean) @ np.array([-s, c])
-    center = mean + np.array([c, s]) * (u.max() + u.min()) / 2 + np.array([-s, c]) * (v.max() + v.min()) / 2
-    centroid = np.array([center[0], center[1], float(pts[:, 2].mean())])
-    return DetectedObject(pts, cells, centroid, yaw, float(u.max() - u.min()), float(v.max() - v.min()))

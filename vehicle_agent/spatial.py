@@ -156,11 +156,38 @@ def visibility(share: np.ndarray) -> np.ndarray:
     return (share >= VISIBLE_SHARE).astype(np.float32)
 
 
-def _circles(xy: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
-    """Three circle centres along each body: (..., 3, 2)."""
-    off = np.maximum(length - width, 0.0)[..., None] / 2 * np.array([-1.0, 0.0, 1.0])
-    d = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
-    return xy[..., None, :] + off[..., None] * d[..., None, :]
+@njit(cache=True)
+def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, safety):
+    """(J, K) index of the first sample time at which j's and k's bodies (three circles
+    of radius width/2 along the heading each) come within ``safety``; -1 if never."""
+    J, T = pos_j.shape[0], pos_j.shape[1]
+    K = obj_xy.shape[0]
+    first = np.full((J, K), -1, dtype=np.int64)
+    for j in range(J):
+        off_j = max(dims_j[j, 0] - dims_j[j, 1], 0.0) / 2
+        for k in range(K):
+            off_k = max(dims_k[k, 0] - dims_k[k, 1], 0.0) / 2
+            reach = dims_j[j, 1] / 2 + dims_k[k, 1] / 2 + safety
+            ck, sk = np.cos(head_k[k]), np.sin(head_k[k])
+            for t in range(T):
+                kx = obj_xy[k, 0] + obj_vel[k, 0] * dt[t]
+                ky = obj_xy[k, 1] + obj_vel[k, 1] * dt[t]
+                jx, jy = pos_j[j, t, 0], pos_j[j, t, 1]
+                # cheap reject: centres farther apart than both half-lengths plus reach
+                if np.hypot(jx - kx, jy - ky) > off_j + off_k + reach:
+                    continue
+                cj, sj = np.cos(head_j[j, t]), np.sin(head_j[j, t])
+                close = False
+                for a in (-1.0, 0.0, 1.0):
+                    for b in (-1.0, 0.0, 1.0):
+                        dx = (jx + a * off_j * cj) - (kx + b * off_k * ck)
+                        dy = (jy + a * off_j * sj) - (ky + b * off_k * sk)
+                        if dx * dx + dy * dy < reach * reach:
+                            close = True
+                if close:
+                    first[j, k] = t
+                    break
+    return first
 
 
 def sample_trajectory(waypoints: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -179,11 +206,12 @@ def sample_trajectory(waypoints: np.ndarray, times: np.ndarray) -> tuple[np.ndar
 
 def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
               obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
-              step_s: float = STEP_S, safety_m: float = SAFETY_M) -> np.ndarray:
+              step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None) -> np.ndarray:
     """(J, K) relevance of each object to each vehicle's trajectory.
 
     ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s]; ``dims_j`` (J, 2) length,
-    width; objects: centroid (K, 2), velocity (K, 2), dims (K, 2) length, width.
+    width; objects: centroid (K, 2), velocity (K, 2), dims (K, 2) length, width, and
+    heading (K,) (default: the direction of motion).
     """
     J, K = len(trajectories), len(obj_xy)
     if J == 0 or K == 0:
@@ -193,21 +221,16 @@ def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.nda
     head_j = np.empty((J, len(times)))
     for j, wp in enumerate(trajectories):
         pos_j[j], head_j[j] = sample_trajectory(wp, times)
-    circles_j = _circles(pos_j, head_j, dims_j[:, 0, None], dims_j[:, 1, None])  # (J, T, 3, 2)
-    pos_k = obj_xy[:, None, :] + obj_vel[:, None, :] * (times - t_now_s)[None, :, None]  # (K, T, 2)
-    speed = np.hypot(obj_vel[:, 0], obj_vel[:, 1])
-    head_k = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)
-    circles_k = _circles(pos_k, np.broadcast_to(head_k[:, None], pos_k.shape[:2]),
-                         obj_dims[:, 0, None], obj_dims[:, 1, None])  # (K, T, 3, 2)
-    diff = circles_j[:, None, :, :, None, :] - circles_k[None, :, :, None, :, :]  # (J, K, T, 3, 3, 2)
-    gap = np.sqrt((diff**2).sum(-1)).min(axis=(-1, -2))  # (J, K, T)
-    gap -= dims_j[:, 1, None, None] / 2 + obj_dims[None, :, 1, None] / 2
-    close = gap < safety_m
-    hit = close.any(axis=2)
+    if obj_heading is None:
+        speed = np.hypot(obj_vel[:, 0], obj_vel[:, 1])
+        obj_heading = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)
+    head_k = np.asarray(obj_heading, dtype=np.float64)
+    first = _first_close(pos_j, head_j, dims_j.astype(np.float64), obj_xy.astype(np.float64),
+                         obj_vel.astype(np.float64), head_k, obj_dims.astype(np.float64), times - t_now_s, safety_m)
+    hit = first >= 0
     if mode == "bool":
         return hit.astype(np.float32)
     if mode == "ttc":
-        first = np.argmax(close, axis=2)
-        ttc = times[first] - t_now_s
+        ttc = (times - t_now_s)[np.maximum(first, 0)]
         return np.where(hit, 1.0 / (1.0 + ttc), 0.0).astype(np.float32)
     raise ValueError(f"relevance mode {mode!r}: 'bool' or 'ttc'")

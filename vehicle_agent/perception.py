@@ -193,15 +193,18 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     n = grid.state.shape[0]
     if sensor_xy is not None and k > 1:
         labels, k = _merge_shadowed(labels, k, grid, sensor_xy)
-    above = (cell_idx >= 0) & (world[:, 2] > grid.spec.ground_clear_m)
-    point_label = np.zeros(len(world), dtype=np.int32)
-    point_label[above] = labels.ravel()[cell_idx[above]]
-    keep = np.flatnonzero(point_label > 0)
-    order = keep[np.argsort(point_label[keep], kind="stable")]
-    bounds = np.searchsorted(point_label[order], np.arange(1, k + 2))
-    cell_label = labels.ravel()
-    cell_order = np.argsort(cell_label, kind="stable")
-    cell_bounds = np.searchsorted(cell_label[cell_order], np.arange(1, k + 2))
+    flat_labels = labels.ravel()
+    above = np.flatnonzero((cell_idx >= 0) & (world[:, 2] > grid.spec.ground_clear_m))
+    point_label = flat_labels[cell_idx[above]].astype(np.int16)  # int16: numpy radix-sorts it
+    keep = point_label > 0
+    by_label = np.argsort(point_label[keep], kind="stable")
+    order = above[keep][by_label]
+    bounds = np.searchsorted(point_label[keep][by_label], np.arange(1, k + 2))
+    flat_cells = np.flatnonzero(flat_labels)
+    cell_label = flat_labels[flat_cells]
+    by_cell_label = np.argsort(cell_label, kind="stable")
+    cell_order = flat_cells[by_cell_label]
+    cell_bounds = np.searchsorted(cell_label[by_cell_label], np.arange(1, k + 2))
     # per-object statistics at once, over the points sorted by label (no per-point loop)
     pts = world[order]
     counts = np.diff(bounds)

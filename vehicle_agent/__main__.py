@@ -18,6 +18,8 @@ from vehicle_agent.agent import LaneFollower
 
 log = logging.getLogger("vehicle_agent")
 
+SCHEMES = ("single", "agnostic", "autocast", "autocast-fptas", "emp")
+
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m vehicle_agent", description=__doc__)
@@ -27,6 +29,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="give up if the world does not answer within this long")
     ap.add_argument("--idle-exit-s", type=float, default=60.0,
                     help="exit if no scan arrives for this long (the world is gone)")
+    ap.add_argument("--scheme", default="autocast", choices=SCHEMES,
+                    help="sharing scheme: single (no V2V), agnostic, autocast, autocast-fptas, emp")
     ap.add_argument("--log-level", default="WARNING")
     add_zenoh_args(ap)
     return ap.parse_args(argv)

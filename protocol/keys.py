@@ -85,6 +85,16 @@ def vid_of(key: str) -> int:
         raise ValueError(f"no vehicle id in key {key!r}") from None
 
 
+def net_emp_up(run: str, vid: int | str) -> str:
+    """A vehicle's Voronoi segment, up to the EMP edge relay."""
+    return f"{_run(run)}/net/emp/up/{_vid(vid)}"
+
+
+def net_emp_down(run: str, vid: int | str) -> str:
+    """What the EMP edge relay forwarded to a vehicle."""
+    return f"{_run(run)}/net/emp/down/{_vid(vid)}"
+
+
 def everything(run: str) -> str:
     """All of a run's keys, for the recorder."""
     return f"{_run(run)}/**"

@@ -237,3 +237,42 @@ class ChannelStats:
     tick: int
     t_sim_s: float
     stats: dict[str, Any]
+
+
+# ------------------------------------------------------- EMP edge relay (V2I baseline)
+
+
+@message(20)
+class EmpUpload:
+    """A vehicle's Voronoi segment of its full scan (the points nearer to it than to any
+    other participant), uploaded to the edge relay for the EMP baseline."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    pose: Pose
+    points_world: np.ndarray  # float32 (n, 3), world frame
+
+
+@record
+class EmpSegment:
+    """One uploader's segment as the relay forwarded it; received at ``rx_time_s`` after
+    the interval opened."""
+
+    sender: int
+    pose: Pose
+    rx_time_s: float
+    points_world: np.ndarray  # float32 (n, 3)
+
+
+@message(21)
+class EmpBundle:
+    """What the relay forwarded to one receiver this interval (closes its interval), plus
+    every uploader's position this interval: next interval's Voronoi sites."""
+
+    tick: int
+    t_sim_s: float
+    receiver: int
+    segments: list[EmpSegment]
+    site_vids: np.ndarray  # int64 (m,)
+    site_xy: np.ndarray  # float64 (m, 2)

@@ -1,0 +1,459 @@
+"""The channel proxy's I/O: collect what vehicles transmit, play the medium, deliver
+to each receiver what it hears, publish statistics.
+
+One interval (tick k), lock-step:
+1. the world's ``Tick`` opens tick k and names the live vehicles;
+2. control phase: wait until every expected vehicle has sent its ``ControlMsg`` for k
+   (or a wall-clock timeout, or the world's next tick); play the control channel;
+   publish one ``CtrlBundle`` per live receiver (it closes that receiver's phase);
+3. data phase: wait likewise for a ``DataTx`` from every vehicle that took part in
+   the control phase; play the data channel; publish one ``DataBundle`` per live
+   receiver, then ``ChannelStats``.
+
+Expected vehicles: the tick's live set minus the dead. A vehicle that misses a phase is
+absent for that tick; after ``dead_after`` absences in a row it is dead and no longer
+waited for, until it sends again; a liveliness token that disappears makes it dead at
+once. Real-time mode closes the phases at wall-clock deadlines after the tick instead.
+
+EMP mode replaces both phases by one upload phase (``EmpUpload``), played by the relay
+(``emp.py``) and delivered as one ``EmpBundle`` per receiver.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from channel_proxy import emp, loss, medium
+from channel_proxy.profiles import ChannelProfile
+from protocol import keys
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
+                               EmpUpload, Outcome, Reception, Tick)
+from protocol.session import DropCounter, big_publisher
+
+log = logging.getLogger(__name__)
+
+MODES = ("v2v", "emp")
+FUTURE_TICKS = 2  # messages may run ahead of the tick by this much (they race the world's Tick)
+
+
+@dataclass(frozen=True, slots=True)
+class ProxyConfig:
+    run_id: str
+    profile: ChannelProfile
+    mode: str = "v2v"
+    seed: int = 0
+    ctrl_loss: float = 0.0  # fixed loss rate on every control link, on top of the distance model
+    data_loss: float = 0.0  # likewise on the data channel (and both relay hops in EMP mode)
+    realtime: bool = False
+    phase_timeout_s: float = 5.0  # lock-step: wall time a phase waits for the missing
+    dead_after: int = 3  # absences in a row before a vehicle is no longer waited for
+    ctrl_deadline_s: float = 0.03  # real-time: the control phase closes this long after the tick
+    data_deadline_s: float = 0.09  # real-time: the data phase closes this long after the tick
+    relay_xy: tuple[float, float] = (0.0, 0.0)
+    emp_bytes_per_point: float = 6.0
+    exit_on_outcome: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}")
+        for name in ("ctrl_loss", "data_loss"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must lie in [0, 1]")
+        if self.dead_after < 1 or self.phase_timeout_s <= 0:
+            raise ValueError("dead_after >= 1 and phase_timeout_s > 0 required")
+
+
+@dataclass
+class Counters:
+    """Cumulative counts over the run (the per-interval ones go into each stats message)."""
+
+    intervals: int = 0
+    late: int = 0  # messages for a phase already closed
+    duplicate: int = 0
+    not_live: int = 0  # from a vehicle the tick does not list
+    wrong_key: int = 0  # vid in the message differs from the key's
+    invalid_tx: int = 0  # transmissions with a negative or non-finite start
+    skipped_ticks: int = 0
+    dead: dict[int, str] = field(default_factory=dict)
+
+
+class ChannelProxy:
+    def __init__(self, config: ProxyConfig, session: zenoh.Session) -> None:
+        self.cfg = config
+        self.session = session
+        self.drops = DropCounter()
+        self.counters = Counters()
+        self.last_stats: dict[str, Any] | None = None
+        self._cv = threading.Condition()
+        self._stop = threading.Event()
+        self._tick: Tick | None = None  # newest Tick heard
+        self._done_tick = -1  # newest tick fully played
+        self._closed = {"ctrl": -1, "data": -1, "emp": -1}  # newest tick whose phase closed
+        self._inbox: dict[str, dict[int, dict[int, Any]]] = {p: defaultdict(dict) for p in self._closed}
+        self._absent: dict[int, int] = {}  # absences in a row
+        self._dead: set[int] = set()
+        self._token_gone: set[int] = set()
+        self._last_xy: dict[int, tuple[float, float]] = {}
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._entities: list = []
+        self._cpu_mark = time.process_time()
+
+    # ------------------------------------------------------------------ wiring
+
+    def _declare(self) -> None:
+        s, run = self.session, self.cfg.run_id
+        self._entities += [
+            s.declare_subscriber(keys.world_tick(run), self._on_tick),
+            s.declare_subscriber(keys.world_outcome(run), self._on_outcome),
+            s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
+        ]
+        if self.cfg.mode == "v2v":
+            self._entities += [
+                s.declare_subscriber(keys.net_ctrl_tx(run, "*"), self._inbound("ctrl", ControlMsg)),
+                s.declare_subscriber(keys.net_data_tx(run, "*"), self._inbound("data", DataTx)),
+            ]
+        else:
+            self._entities.append(s.declare_subscriber(keys.net_emp_up(run, "*"), self._inbound("emp", EmpUpload)))
+        self._pubs["stats"] = s.declare_publisher(keys.net_stats(run))
+
+    def _pub(self, key: str) -> zenoh.Publisher:
+        pub = self._pubs.get(key)
+        if pub is None:
+            pub = self._pubs[key] = big_publisher(self.session, key)
+        return pub
+
+    def _on_tick(self, sample: zenoh.Sample) -> None:
+        try:
+            tick = decode(sample.payload.to_bytes(), Tick)
+        except MalformedMessage as err:
+            self.drops.add(str(sample.key_expr), err)
+            return
+        with self._cv:
+            if self._tick is None or tick.tick > self._tick.tick:
+                self._tick = tick
+                self._cv.notify_all()
+
+    def _on_outcome(self, sample: zenoh.Sample) -> None:
+        try:
+            decode(sample.payload.to_bytes(), Outcome)
+        except MalformedMessage as err:
+            self.drops.add(str(sample.key_expr), err)
+            return
+        if self.cfg.exit_on_outcome:
+            log.info("the world published its outcome; stopping")
+            self.stop()
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        try:
+            vid = keys.vid_of(str(sample.key_expr))
+        except ValueError:
+            return
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._token_gone.discard(vid)
+            else:
+                self._token_gone.add(vid)
+                self._kill(vid, "liveliness token dropped")
+            self._cv.notify_all()
+
+    def _inbound(self, phase: str, expected: type):
+        """Subscriber callback: decode, check, and file the message under (tick, vid)."""
+
+        def handler(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            try:
+                msg = decode(raw, expected)
+                vid = keys.vid_of(key)
+            except (MalformedMessage, ValueError) as err:
+                self.drops.add(key, err)
+                return
+            with self._cv:
+                if msg.vid != vid:
+                    self.counters.wrong_key += 1
+                    self.drops.add(key, ValueError(f"vid {msg.vid} on vehicle {vid}'s key"))
+                    return
+                newest = self._tick.tick if self._tick is not None else -1
+                if msg.tick <= self._closed[phase]:
+                    self.counters.late += 1
+                    return
+                if msg.tick > newest + FUTURE_TICKS:
+                    self.drops.add(key, ValueError(f"tick {msg.tick} is far ahead of the world's {newest}"))
+                    return
+                box = self._inbox[phase][msg.tick]
+                if vid in box:
+                    self.counters.duplicate += 1
+                    return
+                box[vid] = (msg, raw)
+                self._cv.notify_all()
+
+        return handler
+
+    def _kill(self, vid: int, why: str) -> None:
+        """Caller holds ``_cv``."""
+        if vid not in self._dead:
+            self._dead.add(vid)
+            self.counters.dead[vid] = why
+            log.warning("vehicle %d is dead for the channel (%s)", vid, why)
+
+    # ------------------------------------------------------------------ running
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+
+    def serve(self) -> Counters:
+        """Play intervals until stopped; returns the run's counters."""
+        self._declare()
+        try:
+            while not self._stop.is_set():
+                tick, t_open = self._next_tick()
+                if tick is None:
+                    break
+                if self.cfg.mode == "v2v":
+                    self._play_v2v(tick, t_open)
+                else:
+                    self._play_emp(tick, t_open)
+        finally:
+            for entity in self._entities:
+                entity.undeclare()
+            for pub in self._pubs.values():
+                pub.undeclare()
+        return self.counters
+
+    def _next_tick(self) -> tuple[Tick | None, float]:
+        with self._cv:
+            while not self._stop.is_set():
+                if self._tick is not None and self._tick.tick > self._done_tick:
+                    if self._done_tick >= 0 and self._tick.tick > self._done_tick + 1:
+                        self.counters.skipped_ticks += self._tick.tick - self._done_tick - 1
+                    return self._tick, time.monotonic()
+                self._cv.wait(0.5)
+        return None, 0.0
+
+    def _collect(self, phase: str, k: int, expected: set[int], deadline: float) -> dict[int, tuple[Any, bytes]]:
+        """Wait until every expected vehicle has filed its message for tick k, the
+        deadline passes, the world moves past k, or we stop; then close the phase."""
+        with self._cv:
+            while not self._stop.is_set():
+                have = self._inbox[phase].get(k, {})
+                waiting = expected - set(have) - self._dead - self._token_gone
+                if not waiting:
+                    break
+                if self._tick is not None and self._tick.tick > k:
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cv.wait(left)
+            self._closed[phase] = max(self._closed[phase], k)
+            got = self._inbox[phase].pop(k, {})
+            for t in [t for t in self._inbox[phase] if t <= k]:
+                self.counters.late += len(self._inbox[phase].pop(t))
+            return got
+
+    def _deadline(self, t_open: float, realtime_after_s: float) -> float:
+        return t_open + (realtime_after_s if self.cfg.realtime else self.cfg.phase_timeout_s)
+
+    def _account(self, expected: set[int], present: set[int]) -> list[int]:
+        """Absences in a row; dead after ``dead_after``; a vehicle that sends is alive again."""
+        absent = sorted(expected - present)
+        with self._cv:
+            for vid in present:
+                self._absent[vid] = 0
+                if vid in self._dead and vid not in self._token_gone:
+                    self._dead.discard(vid)
+                    self.counters.dead.pop(vid, None)
+                    log.info("vehicle %d is back", vid)
+            for vid in absent:
+                self._absent[vid] = self._absent.get(vid, 0) + 1
+                if self._absent[vid] >= self.cfg.dead_after:
+                    self._kill(vid, f"absent {self._absent[vid]} phases in a row")
+        return absent
+
+    def _live(self, tick: Tick) -> tuple[np.ndarray, set[int]]:
+        with self._cv:
+            live = np.array(sorted(set(tick.live) - self._token_gone), dtype=np.int64)
+            expected = set(live.tolist()) - self._dead
+        return live, expected
+
+    def _positions(self, vids: np.ndarray) -> np.ndarray:
+        """(C, 2) latest known position of each vehicle; NaN if never heard of."""
+        nan = (math.nan, math.nan)
+        return np.array([self._last_xy.get(v, nan) for v in vids.tolist()], dtype=np.float64).reshape(-1, 2)
+
+    def _publish_stats(self, tick: Tick, stats: dict[str, Any], t_work: float) -> None:
+        cpu = time.process_time()
+        stats.update({
+            "tick": tick.tick,
+            "mode": self.cfg.mode,
+            "work_ms": round((time.perf_counter() - t_work) * 1e3, 3),
+            "cpu_ms": round((cpu - self._cpu_mark) * 1e3, 3),
+            "malformed_dropped": self.drops.total,
+            "late": self.counters.late,
+            "duplicate": self.counters.duplicate,
+            "not_live": self.counters.not_live,
+            "invalid_tx": self.counters.invalid_tx,
+            "dead": sorted(self.counters.dead),
+        })
+        self._cpu_mark = cpu
+        self.last_stats = stats
+        self.counters.intervals += 1
+        self._pubs["stats"].put(encode(ChannelStats(tick.tick, tick.t_sim_s, stats)))
+        log.debug("tick %d: %s", tick.tick, stats)
+
+    # ------------------------------------------------------------------ V2V
+
+    def _play_v2v(self, tick: Tick, t_open: float) -> None:
+        k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        live, expected = self._live(tick)
+        ctrl = self._collect("ctrl", k, expected, self._deadline(t_open, self.cfg.ctrl_deadline_s))
+        t_work = time.perf_counter()
+        ctrl = self._only_live(ctrl, live)
+        absent_ctrl = self._account(expected, set(ctrl))
+        for vid, (msg, _) in ctrl.items():
+            self._last_xy[vid] = (msg.pose.x_m, msg.pose.y_m)
+        xy = self._positions(live)
+        reach = loss.in_range(xy, profile.prr)
+        senders = np.array(sorted(ctrl), dtype=np.int64)
+        s_idx = np.searchsorted(live, senders)
+        sizes = np.array([_ctrl_onair(ctrl[v][0]) for v in senders.tolist()], dtype=np.int64)
+        out = medium.play_control(live, s_idx, sizes, loss.link_probabilities(xy, profile.prr, self.cfg.ctrl_loss),
+                                  reach, capacity_bytes=profile.ctrl_capacity_bytes, seed=self.cfg.seed, tick=k)
+        raws = [ctrl[v][1] for v in senders.tolist()]
+        for c, receiver in enumerate(live.tolist()):
+            heard = np.flatnonzero(out.heard[:, c])
+            self._pub(keys.net_ctrl_rx(run, receiver)).put(
+                encode(CtrlBundle(k, tick.t_sim_s, receiver, [raws[s] for s in heard])))
+        ctrl_stats = {
+            "senders": len(senders),
+            "offered_bytes": int(sizes.sum()),
+            "overflow_msgs": int(out.overflow.sum()),
+            "delivered_pairs": int(out.heard.sum()),
+            "lost_channel_pairs": int(out.lost_channel.sum()),
+            "in_range_pairs": int(out.in_range.sum()),
+            "absent": absent_ctrl,
+        }
+        ctrl_work_s = time.perf_counter() - t_work
+
+        data = self._collect("data", k, set(ctrl), self._deadline(t_open, self.cfg.data_deadline_s))
+        t_work = time.perf_counter() - ctrl_work_s  # so that work_ms counts both phases' work, not the wait
+        data = self._only_live(data, live)
+        absent_data = self._account(set(ctrl), set(data))
+        stats = {"ctrl": ctrl_stats, "data": self._deliver_data(tick, live, xy, reach, data)}
+        stats["data"]["absent"] = absent_data
+        self._publish_stats(tick, stats, t_work)
+        self._done_tick = k
+
+    def _only_live(self, got: dict[int, tuple[Any, bytes]], live: np.ndarray) -> dict[int, tuple[Any, bytes]]:
+        live_set = set(live.tolist())
+        out = {v: m for v, m in got.items() if v in live_set}
+        self.counters.not_live += len(got) - len(out)
+        return out
+
+    def _deliver_data(self, tick: Tick, live: np.ndarray, xy: np.ndarray, reach: np.ndarray,
+                      data: dict[int, tuple[DataTx, bytes]]) -> dict[str, Any]:
+        k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        txs: list[tuple[int, Any]] = []
+        for vid in sorted(data):
+            for t in data[vid][0].transmissions:
+                if math.isfinite(t.start_s) and t.start_s >= 0.0:
+                    txs.append((vid, t))
+                else:
+                    self.counters.invalid_tx += 1
+        sender = np.searchsorted(live, np.array([v for v, _ in txs], dtype=np.int64))
+        item = np.array([t.object_id for _, t in txs], dtype=np.int64)
+        size = np.array([len(t.payload) for _, t in txs], dtype=np.int64)
+        start = np.array([t.start_s for _, t in txs], dtype=np.float64)
+        out = medium.play_data(live, sender, item, start, size,
+                               loss.link_probabilities(xy, profile.prr, self.cfg.data_loss), reach,
+                               bandwidth_bps=profile.bandwidth_bps, interval_s=profile.decision_interval_s,
+                               seed=self.cfg.seed, tick=k)
+        rx_s = out.end_ns / medium.NS
+        order = np.lexsort((item, live[sender] if len(txs) else sender, out.end_ns))  # by time, sender, object
+        for c, receiver in enumerate(live.tolist()):
+            got = order[out.delivered[order, c]]
+            receptions = [Reception(int(live[sender[t]]), int(item[t]), float(rx_s[t]), txs[t][1].payload)
+                          for t in got.tolist()]
+            self._pub(keys.net_data_rx(run, receiver)).put(encode(DataBundle(k, tick.t_sim_s, receiver, receptions)))
+        size_col = size[:, None]
+        sent = ~out.overflow
+        return {
+            "transmissions": len(txs),
+            "offered_bytes": int(size.sum()),
+            "overflow_tx": int(out.overflow.sum()),
+            "overflow_bytes": int(size[out.overflow].sum()),
+            "collided_tx": int(np.any(out.collided, axis=1).sum()),
+            "delivered_pairs": int(out.delivered.sum()),
+            "delivered_bytes": int((out.delivered * size_col).sum()),
+            "lost_collision_bytes": int((out.collided * size_col).sum()),
+            "lost_channel_bytes": int((out.lost_channel * size_col).sum()),
+            "in_range_bytes": int((out.in_range * size_col).sum()),
+            "utilization": round(out.busy_ns / (profile.decision_interval_s * medium.NS), 4),
+            "objects": [[int(live[sender[t]]), int(item[t]), round(float(out.start_ns[t] / medium.NS), 6),
+                         round(float(rx_s[t]), 6), int(out.delivered[t].sum()), int(out.in_range[t].sum())]
+                        for t in np.flatnonzero(sent).tolist()],
+        }
+
+    # ------------------------------------------------------------------ EMP
+
+    def _play_emp(self, tick: Tick, t_open: float) -> None:
+        k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        live, expected = self._live(tick)
+        ups = self._collect("emp", k, expected, self._deadline(t_open, self.cfg.data_deadline_s))
+        t_work = time.perf_counter()
+        ups = self._only_live(ups, live)
+        absent = self._account(expected, set(ups))
+        for vid, (msg, _) in ups.items():
+            self._last_xy[vid] = (msg.pose.x_m, msg.pose.y_m)
+        xy = self._positions(live)
+        d_relay = np.hypot(xy[:, 0] - self.cfg.relay_xy[0], xy[:, 1] - self.cfg.relay_xy[1])
+        d_relay = np.where(np.isnan(d_relay), np.inf, d_relay)
+        p = profile.prr.prr(d_relay) * (1.0 - self.cfg.data_loss)
+        reach = d_relay <= profile.prr.max_range_m
+        senders = np.array(sorted(ups), dtype=np.int64)
+        s_idx = np.searchsorted(live, senders)
+        msgs = [ups[v][0] for v in senders.tolist()]
+        size = emp.segment_onair_bytes(np.array([len(m.points_world) for m in msgs]), self.cfg.emp_bytes_per_point)
+        out = emp.play_relay(live, s_idx, size, p[s_idx], p, reach, bandwidth_bps=profile.bandwidth_bps,
+                             interval_s=profile.decision_interval_s, seed=self.cfg.seed, tick=k)
+        rx_s = out.fwd_end_ns / medium.NS
+        site_vids = senders
+        site_xy = xy[s_idx] if len(s_idx) else np.zeros((0, 2))
+        order = np.argsort(out.fwd_end_ns, kind="stable")
+        for c, receiver in enumerate(live.tolist()):
+            got = order[out.delivered[order, c]]
+            segs = [EmpSegment(int(senders[u]), msgs[u].pose, float(rx_s[u]), msgs[u].points_world) for u in got.tolist()]
+            self._pub(keys.net_emp_down(run, receiver)).put(
+                encode(EmpBundle(k, tick.t_sim_s, receiver, segs, site_vids, site_xy)))
+        size_col = size[:, None]
+        stats = {"emp": {
+            "uploads": len(senders),
+            "offered_bytes": int(size.sum()),
+            "overflow_tx": int(out.overflow.sum()),
+            "overflow_bytes": int(size[out.overflow].sum()),
+            "lost_uplink": int((~out.overflow & ~out.uploaded).sum()),
+            "delivered_pairs": int(out.delivered.sum()),
+            "delivered_bytes": int((out.delivered * size_col).sum()),
+            "in_range_bytes": int((out.in_range * size_col).sum()),
+            "utilization": round(out.busy_ns / (profile.decision_interval_s * medium.NS), 4),
+            "absent": absent,
+        }}
+        self._publish_stats(tick, stats, t_work)
+        self._done_tick = k
+
+
+def _ctrl_onair(msg: ControlMsg) -> int:
+    om = msg.objects
+    return medium.control_onair_bytes(len(om.object_id), len(om.receivers), len(msg.trajectory), len(msg.heard))

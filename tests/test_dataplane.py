@@ -63,7 +63,7 @@ def test_empty_cells_behind_an_object_are_occluded_area():
 def test_tracking_keeps_ids_and_estimates_velocity():
     tracker = Tracker()
     ids, vel = [], None
-    for k in range(10):
+    for k in range(15):  # motion is judged over a 1 s window: 10 ticks
         x = 20.0 + 1.0 * k  # 10 m/s along x, 0.1 s per tick
         _, objs = perceive([[x, 3.5, 0.0, 4.5, 1.8, 1.5], [15.0, -6.0, 0.0, 4.5, 1.8, 1.5]])
         tracks = tracker.update(objs, 0.1 * k)

@@ -1,20 +1,138 @@
-"""The agent's per-tick step.
+"""The agent's per-interval step, one line per stage (CARLA BasicAgent style).
 
-For now the agent is a lane follower: it tracks its mission route at its cruise
-speed (stationary vehicles hold still). Perception, spatial reasoning, scheduling,
-fusion and planning join this step as their stages land, one line each.
+perceive -> control message -> [schedule -> share] -> fuse -> plan -> control. The
+bracketed stages need the V2V channel; the process loop (``__main__``) runs them
+through the channel proxy, a test can run them through a perfect in-process channel.
+Every stage's wall time goes into ``timings_ms``.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
-from protocol.messages import Command, Mission, Scan
+import numpy as np
+
+from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
 from vehicle_agent.control import VehicleController
+from vehicle_agent.dataplane import DataPlane, View
+from vehicle_agent.fusion import FusedGrid
+from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
+
+SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
+
+
+@dataclass
+class Agent:
+    mission: Mission
+    mapmsg: MapMsg
+    dataplane: DataPlane = field(init=False)
+    planner: Planner = field(init=False)
+    controller: VehicleController = field(init=False)
+    last_plan: Plan | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.dataplane = DataPlane(self.mission, self.mapmsg)
+        self.planner = Planner(self.mission)
+        self.controller = VehicleController(self.mission.spec, self.mission.decision_interval_s)
+
+    # ------------------------------------------------------------------ stages
+
+    def perceive(self, scan: Scan) -> View:
+        t0 = time.perf_counter()
+        view = self.dataplane.perceive(scan)
+        self.timings_ms = {"perception": (time.perf_counter() - t0) * 1e3}
+        return view
+
+    def control_message(self, view: View, scan: Scan, heard: list[int]) -> ControlMsg:
+        """What this vehicle broadcasts: pose, planned trajectory, object map."""
+        t0 = time.perf_counter()
+        traj = self.last_plan.trajectory if self.last_plan is not None else \
+            np.array([[scan.pose.x_m, scan.pose.y_m, scan.t_sim_s]], dtype=np.float32)
+        msg = self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard)
+        self.timings_ms["spatial_reasoning"] = (time.perf_counter() - t0) * 1e3
+        return msg
+
+    def fuse(self, view: View, payloads: list[bytes]) -> FusedGrid:
+        t0 = time.perf_counter()
+        fused, _ = self.dataplane.fuse(view, payloads)
+        self.timings_ms["fusion"] = (time.perf_counter() - t0) * 1e3
+        return fused
+
+    def plan(self, view: View, fused: FusedGrid, scan: Scan) -> Plan:
+        t0 = time.perf_counter()
+        obstacles, moving = self._obstacles(view, fused)
+        plan = self.planner.run_step(view.grid, fused.state, moving, obstacles, scan.pose, scan.speed_mps,
+                                     scan.t_sim_s)
+        self.last_plan = plan
+        self.timings_ms["planning"] = (time.perf_counter() - t0) * 1e3
+        return plan
+
+    def control(self, plan: Plan, scan: Scan) -> Command:
+        t0 = time.perf_counter()
+        steer = 0.0
+        if len(plan.path) >= 2:
+            _, steer = self.controller.run_step(scan.pose, scan.speed_mps, plan.path, self.mission.cruise_speed_mps)
+        accel = float(np.clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2, self.mission.spec.max_accel_mps2))
+        self.timings_ms["control"] = (time.perf_counter() - t0) * 1e3
+        return Command(scan.tick, scan.t_sim_s, self.mission.vid, accel, steer)
+
+    def drive(self, view: View, fused: FusedGrid, scan: Scan) -> Command:
+        """plan -> control."""
+        return self.control(self.plan(view, fused, scan), scan)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _obstacles(self, view: View, fused: FusedGrid) -> tuple[list[Obstacle], np.ndarray]:
+        """Own tracks and received objects as obstacles, and the cells of the moving ones."""
+        grid = view.grid
+        n = grid.state.shape[0]
+        moving = np.zeros((n, n), dtype=bool)
+        obstacles = []
+        spec = self.mission.spec
+        c, s_ = np.cos(view.pose.yaw_rad), np.sin(view.pose.yaw_rad)
+        for tr in view.tracks:
+            det = tr.detection
+            obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
+                                      view.t_sim_s, tr.heading_rad))
+            if tr.speed_mps > STATIC_MPS:
+                _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
+        for obj in self.dataplane.received.current(view.t_sim_s):
+            xy = obj.points_world[:, :2]
+            dx, dy = xy[:, 0] - view.pose.x_m, xy[:, 1] - view.pose.y_m
+            on_me = (np.abs(c * dx + s_ * dy) <= spec.length_m / 2 + 0.5) & (np.abs(-s_ * dx + c * dy) <= spec.width_m / 2 + 0.5)
+            if on_me.mean() >= SELF_SHARE:
+                continue  # ourselves, as another vehicle saw us
+            center = (xy.min(axis=0) + xy.max(axis=0)) / 2
+            extent = xy.max(axis=0) - xy.min(axis=0)
+            obstacles.append(Obstacle(center, obj.velocity_xy, float(max(extent.max(), 1.0)),
+                                      float(max(extent.min(), 1.0)), view.t_sim_s,
+                                      float(np.arctan2(obj.velocity_xy[1], obj.velocity_xy[0]))))
+            if np.hypot(*obj.velocity_xy) > STATIC_MPS:
+                _mark(moving, grid, xy)
+        return obstacles, moving
+
+
+def _mark(mask: np.ndarray, grid, xy: np.ndarray) -> None:
+    rc = grid.cell_of(xy)
+    n = mask.shape[0]
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+    mask[rc[ok, 0], rc[ok, 1]] = True
+
+
+def _retimed(traj: np.ndarray, t_now_s: float) -> np.ndarray:
+    """Last interval's plan from now on: waypoints already passed evicted, first one now."""
+    ahead = traj[traj[:, 2] > t_now_s]
+    if len(ahead) == 0:
+        return traj[-1:].copy()
+    return ahead
 
 
 @dataclass
 class LaneFollower:
+    """The minimal agent: tracks its route at its cruise speed, blind to everything."""
+
     mission: Mission
     controller: VehicleController = field(init=False)
 

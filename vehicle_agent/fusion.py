@@ -27,6 +27,7 @@ ObjectKey = tuple[int, int]  # (sender vid, object id)
 class SharedObject:
     key: ObjectKey
     points_world: np.ndarray  # float64 (n, 3), placed at the current time
+    velocity_xy: np.ndarray  # float64 (2,), world frame
     age_s: float  # now minus the capture time
     fresh: bool  # received this interval (False: carried forward)
 
@@ -54,7 +55,7 @@ class ReceivedStore:
                 continue
             placed = world.copy()
             placed[:, :2] += obj.velocity_xy.astype(np.float64) * age
-            out.append(SharedObject(key, placed, age, key in fresh_keys))
+            out.append(SharedObject(key, placed, obj.velocity_xy.astype(np.float64), age, key in fresh_keys))
         return out
 
 

@@ -1,14 +1,18 @@
 """Tracking objects across ticks in the world frame (the agent knows its pose exactly).
 
 Nearest-neighbour association with gating on the predicted position, then an
-alpha-beta filter on the centroid for velocity. A partial view makes a centroid jump
-as the visible faces change, so velocity is smoothed and very small speeds are clamped
-to zero (a parked car should not drift). Ids are stable for as long as a track is
-matched; a track unmatched for ``max_missed`` ticks is dropped.
+alpha-beta filter on the centroid for velocity. A partial view makes a centroid move
+as the visible faces change while the observer drives by, which would give a parked
+truck a phantom velocity. So a track counts as moving only if it has left most of the
+world cells it occupied ``MOTION_WINDOW`` ticks ago (the cells are on the world
+lattice, so the observer's own motion does not matter) and its filtered speed is
+above ``STILL_MPS``; otherwise its velocity is zero. Ids are stable for as long as a
+track is matched; a track unmatched for ``max_missed`` ticks is dropped.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,7 +21,9 @@ from vehicle_agent.perception import DetectedObject
 
 GATE_M = 2.5
 ALPHA, BETA = 0.6, 0.25
-STILL_MPS = 0.4
+STILL_MPS = 1.0
+MOTION_WINDOW = 10  # ticks: an object is moving only if it left most of its cells of 1 s ago
+STATIC_OVERLAP = 0.5
 
 
 @dataclass(slots=True)
@@ -29,6 +35,7 @@ class Track:
     detection: DetectedObject
     hits: int = 1
     missed: int = 0
+    filtered_velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     @property
     def speed_mps(self) -> float:
@@ -50,14 +57,20 @@ class Tracker:
     tracks: list[Track] = field(default_factory=list)
     _next_id: int = 0
 
+    _history: deque = field(default_factory=lambda: deque(maxlen=MOTION_WINDOW + 1))
+
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
         """Associate this tick's detections; returns the tracks seen this tick, by id."""
+        occupied = np.unique(np.concatenate([_cell_ids(d.cells) for d in detections])) if detections else \
+            np.zeros(0, dtype=np.int64)
+        self._history.append(occupied)
+        past = self._history[0] if len(self._history) > MOTION_WINDOW else None
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
         predicted = np.array([tr.predict(t_sim_s) for tr in self.tracks]).reshape(-1, 2)
         pairs = _associate(predicted, centroids, GATE_M)
         matched_tracks, matched_dets = set(), set()
         for ti, di in pairs:
-            self._correct(self.tracks[ti], detections[di], t_sim_s)
+            self._correct(self.tracks[ti], detections[di], t_sim_s, past)
             matched_tracks.add(ti)
             matched_dets.add(di)
         for ti, tr in enumerate(self.tracks):
@@ -71,18 +84,27 @@ class Tracker:
         return sorted((tr for tr in self.tracks if tr.missed == 0), key=lambda tr: tr.track_id)
 
     @staticmethod
-    def _correct(tr: Track, det: DetectedObject, t_sim_s: float) -> None:
+    def _correct(tr: Track, det: DetectedObject, t_sim_s: float, past_cells: np.ndarray | None) -> None:
         dt = max(t_sim_s - tr.t_sim_s, 1e-3)
-        predicted = tr.xy + tr.velocity * dt
+        predicted = tr.xy + tr.filtered_velocity * dt
         residual = det.centroid[:2] - predicted
         tr.xy = predicted + ALPHA * residual
-        tr.velocity = tr.velocity + (BETA / dt) * residual
-        if np.hypot(*tr.velocity) < STILL_MPS:
+        tr.filtered_velocity = tr.filtered_velocity + (BETA / dt) * residual
+        moved = past_cells is not None and \
+            np.isin(_cell_ids(det.cells), past_cells, assume_unique=False).mean() < STATIC_OVERLAP
+        if moved and np.hypot(*tr.filtered_velocity) >= STILL_MPS:
+            tr.velocity = tr.filtered_velocity.copy()
+        else:
             tr.velocity = np.zeros(2)
         tr.t_sim_s = t_sim_s
         tr.detection = det
         tr.hits += 1
         tr.missed = 0
+
+
+def _cell_ids(cells: np.ndarray) -> np.ndarray:
+    """One int64 per global lattice cell (i, j)."""
+    return cells[:, 0].astype(np.int64) * 1_000_003 + cells[:, 1].astype(np.int64)
 
 
 def _associate(a: np.ndarray, b: np.ndarray, gate: float) -> list[tuple[int, int]]:

@@ -1,0 +1,387 @@
+"""Path and trajectory planning on the fused occupancy grid (paper 5.2).
+
+Path: A* over the grid's 8-connected cells from the vehicle to the route point
+``lookahead_m`` ahead. Passable cells are drivable, not within the car's half width
+(plus a margin) of a *static* obstacle (moving ones are the trajectory planner's
+business), and within ``corridor_m`` of the route (the lane and its neighbour, so a
+blocked lane can be passed, as in overtaking). Costs add the distance from the route
+(stay in lane when you can) and a turn penalty that grows with speed (no heading
+change the current speed cannot take). The path is reused while a fast check finds
+its cells still passable.
+
+Trajectory: the path with arrival times from the speed profile (accelerate to the
+cruise speed at the comfort rate). Every tracked object, own or received, is
+extrapolated at constant velocity; a waypoint conflicts when an object's body comes
+within ``safety_m`` of the ego's around the time the ego is there. Bodies: the ego is a
+circle of its half width on each waypoint, each object its oriented box. The vehicle
+follows the plan until it is within stopping distance of the first conflict, then
+brakes to stop short of it; it resumes when the conflict is gone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from protocol.messages import Mission, Pose, VehicleSpec
+from vehicle_agent.perception import ABOVE, Grid
+
+STATIC_MPS = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerConfig:
+    lookahead_m: float = 40.0
+    corridor_m: float = 6.0
+    margin_m: float = 0.3  # obstacle inflation beyond the half width
+    route_weight: float = 0.4  # cost per cell per metre off the route
+    turn_weight: float = 0.05  # cost per 45 degrees of heading change, per m/s of speed
+    comfort_brake_mps2: float = 4.0
+    comfort_accel_mps2: float = 2.0
+    safety_m: float = 1.2  # clearance between bodies (less than a lane's spare width: 3.5 - 1.8)
+    time_window_s: float = 1.5  # +- uncertainty on when an object is where
+    horizon_s: float = 8.0
+    stop_buffer_m: float = 3.0
+
+
+@dataclass(frozen=True, slots=True)
+class Obstacle:
+    """An object to avoid: where it is at ``t_sim_s``, how it moves, how big it is."""
+
+    xy: np.ndarray
+    velocity: np.ndarray
+    length_m: float
+    width_m: float
+    t_sim_s: float
+    heading_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    path: np.ndarray  # (m, 2) world frame
+    accel_mps2: float
+    trajectory: np.ndarray  # float32 (p, 3) [x, y, t] every second, for the control message
+    conflict_s_m: float | None  # distance along the path to the first predicted conflict
+    braking: bool
+
+
+# ------------------------------------------------------------------------ A* path
+
+
+@njit(cache=True)
+def _inflate(obst, radius):
+    """Cells within ``radius`` cells (Euclidean) of an obstacle cell."""
+    ny, nx = obst.shape
+    out = np.zeros_like(obst)
+    r2 = radius * radius
+    for y in range(ny):
+        for x in range(nx):
+            if not obst[y, x]:
+                continue
+            for dy in range(-radius, radius + 1):
+                yy = y + dy
+                if yy < 0 or yy >= ny:
+                    continue
+                for dx in range(-radius, radius + 1):
+                    xx = x + dx
+                    if 0 <= xx < nx and dx * dx + dy * dy <= r2:
+                        out[yy, xx] = True
+    return out
+
+
+_DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
+_DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])
+
+
+@njit(cache=True)
+def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_cost):
+    """A* over (cell, heading of the last move); returns the path cells (m, 2) or (0, 2)."""
+    ny, nx = passable.shape
+    n_states = ny * nx * 8
+    g = np.full(n_states, np.inf)
+    parent = np.full(n_states, -1, dtype=np.int64)
+    closed = np.zeros(n_states, dtype=np.bool_)
+    heap_f = np.empty(n_states + 1)
+    heap_s = np.empty(n_states + 1, dtype=np.int64)
+    size = 0
+    s0 = (start_r * nx + start_c) * 8 + start_dir
+    g[s0] = 0.0
+    heap_f[0] = 0.0
+    heap_s[0] = s0
+    size = 1
+    goal_state = -1
+    while size > 0:
+        f, s = heap_f[0], heap_s[0]
+        size -= 1
+        # sift down the last element from the root
+        lf, ls = heap_f[size], heap_s[size]
+        i = 0
+        while True:
+            c = 2 * i + 1
+            if c >= size:
+                break
+            if c + 1 < size and heap_f[c + 1] < heap_f[c]:
+                c += 1
+            if heap_f[c] < lf:
+                heap_f[i], heap_s[i] = heap_f[c], heap_s[c]
+                i = c
+            else:
+                break
+        heap_f[i], heap_s[i] = lf, ls
+        if closed[s]:
+            continue
+        closed[s] = True
+        cell, d = s // 8, s % 8
+        r, cc = cell // nx, cell % nx
+        if r == goal_r and cc == goal_c:
+            goal_state = s
+            break
+        for nd in range(8):
+            turn = abs(nd - d)
+            turn = min(turn, 8 - turn)
+            if turn > 2:  # no more than 90 degrees in one cell
+                continue
+            rr, c2 = r + _DY[nd], cc + _DX[nd]
+            if rr < 0 or rr >= ny or c2 < 0 or c2 >= nx or not passable[rr, c2]:
+                continue
+            step = 1.4142135 if nd % 2 == 1 else 1.0
+            ns = (rr * nx + c2) * 8 + nd
+            cost = g[s] + step * (1.0 + extra[rr, c2]) + turn_cost * turn
+            if cost < g[ns] and not closed[ns]:
+                g[ns] = cost
+                parent[ns] = s
+                h = np.hypot(rr - goal_r, c2 - goal_c)
+                # sift up
+                j = size
+                size += 1
+                while j > 0:
+                    p = (j - 1) // 2
+                    if heap_f[p] <= cost + h:
+                        break
+                    heap_f[j], heap_s[j] = heap_f[p], heap_s[p]
+                    j = p
+                heap_f[j], heap_s[j] = cost + h, ns
+    if goal_state < 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    n = 0
+    s = goal_state
+    while s >= 0:
+        n += 1
+        s = parent[s]
+    out = np.empty((n, 2), dtype=np.int64)
+    s = goal_state
+    for k in range(n - 1, -1, -1):
+        cell = s // 8
+        out[k, 0], out[k, 1] = cell // nx, cell % nx
+        s = parent[s]
+    return out
+
+
+def _route_distance(grid: Grid, route: np.ndarray) -> np.ndarray:
+    """Distance (m) from every cell centre of the grid to the route polyline."""
+    n = grid.state.shape[0]
+    rows, cols = np.mgrid[0:n, 0:n]
+    p = grid.cell_centers(rows.ravel(), cols.ravel())
+    near = route[np.linalg.norm(route - grid.cell_centers(np.array([n // 2]), np.array([n // 2]))[0], axis=1)
+                 < grid.spec.half_extent_m * 1.5 + 50.0]
+    if len(near) < 2:
+        near = route
+    a, ab = near[:-1], np.diff(near, axis=0)
+    best = np.full(len(p), np.inf)
+    for k in range(len(a)):  # a few dozen segments; each pass is vectorized over the cells
+        len2 = max(float(ab[k] @ ab[k]), 1e-12)
+        t = np.clip(((p - a[k]) @ ab[k]) / len2, 0.0, 1.0)
+        best = np.minimum(best, np.hypot(*(p - a[k] - t[:, None] * ab[k]).T))
+    return best.reshape(n, n)
+
+
+def _along(route: np.ndarray, xy: np.ndarray) -> float:
+    a, ab = route[:-1], np.diff(route, axis=0)
+    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / len2, 0.0, 1.0)
+    i = int(np.argmin(np.linalg.norm(a + t[:, None] * ab - xy, axis=1)))
+    return float(np.concatenate([[0.0], np.cumsum(np.sqrt(len2))])[i] + t[i] * np.sqrt(len2[i]))
+
+
+def _point_at(route: np.ndarray, s: np.ndarray) -> np.ndarray:
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
+    s = np.clip(s, 0.0, cum[-1])
+    return np.stack([np.interp(s, cum, route[:, 0]), np.interp(s, cum, route[:, 1])], axis=-1)
+
+
+@dataclass
+class PathPlanner:
+    route: np.ndarray
+    spec: VehicleSpec
+    config: PlannerConfig = field(default_factory=PlannerConfig)
+    path: np.ndarray | None = None
+    replans: int = 0
+
+    def plan(self, grid: Grid, static_obstacles: np.ndarray, pose: Pose, speed_mps: float) -> np.ndarray:
+        """A world-frame path (m, 2) from the vehicle toward the route ahead."""
+        cfg = self.config
+        radius = int(np.ceil((self.spec.width_m / 2 + cfg.margin_m) / grid.spec.cell_m))
+        blocked = _inflate(static_obstacles, radius)
+        dist = _route_distance(grid, self.route)
+        passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
+        s_now = _along(self.route, np.array([pose.x_m, pose.y_m]))
+        route_ahead = _point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0))
+        if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
+            return self.path
+        start = grid.cell_of(np.array([pose.x_m, pose.y_m]))
+        n = grid.state.shape[0]
+        goal = None
+        for xy in route_ahead[::-1]:  # the farthest passable route point ahead, inside the grid
+            rc = grid.cell_of(xy)
+            if 0 <= rc[0] < n and 0 <= rc[1] < n and passable[rc[0], rc[1]]:
+                goal = rc
+                break
+        self.replans += 1
+        if goal is None or not (0 <= start[0] < n and 0 <= start[1] < n):
+            self.path = route_ahead
+            return self.path
+        passable[start[0], start[1]] = True
+        heading = int(np.round(pose.yaw_rad / (np.pi / 4))) % 8
+        extra = (cfg.route_weight * dist).astype(np.float64)
+        cells = _astar(passable, extra, int(start[0]), int(start[1]), heading, int(goal[0]), int(goal[1]),
+                       cfg.turn_weight * max(speed_mps, 1.0))
+        if len(cells) < 2:
+            self.path = route_ahead  # no way through: the speed planner stops short of the block
+        else:
+            self.path = _smooth(grid.cell_centers(cells[:, 0], cells[:, 1]))
+            self.path[0] = [pose.x_m, pose.y_m]
+        return self.path
+
+    def _still_good(self, grid: Grid, passable: np.ndarray, pose: Pose, route_ahead: np.ndarray) -> bool:
+        """The fast check: the old path's remaining cells are passable and it still leads ahead."""
+        path = self.path
+        s = _along(path, np.array([pose.x_m, pose.y_m]))
+        if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or _along(path, path[-1]) - s < 15.0:
+            return False
+        rc = grid.cell_of(_point_at(path, s + np.arange(0.0, _along(path, path[-1]) - s, 0.5)))
+        n = grid.state.shape[0]
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+        return bool(passable[rc[inside, 0], rc[inside, 1]].all())
+
+
+def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
+    """Moving average of the grid path (end points kept): removes the 45-degree stair steps."""
+    if len(path) <= window:
+        return path.copy()
+    kernel = np.ones(window) / window
+    out = path.copy()
+    half = window // 2
+    for d in range(2):
+        out[half:-half, d] = np.convolve(path[:, d], kernel, mode="valid")
+    return out
+
+
+# ------------------------------------------------------------------------ speed / conflicts
+
+
+def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:
+    """Time to cover distance ``s`` starting at v0, accelerating at ``accel`` up to v_cruise."""
+    v_cruise = max(v_cruise, 1e-3)
+    v0 = min(v0, v_cruise)
+    t_acc = (v_cruise - v0) / accel
+    s_acc = (v0 + v_cruise) / 2 * t_acc
+    t = np.where(s <= s_acc, (-v0 + np.sqrt(v0 * v0 + 2 * accel * np.maximum(s, 0.0))) / accel,
+                 t_acc + (s - s_acc) / v_cruise)
+    return t
+
+
+def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: list[Obstacle],
+                   t_now_s: float, cfg: PlannerConfig) -> float | None:
+    """Distance along the path of the first waypoint some obstacle will occupy when the
+    vehicle gets there (within the time window), or None."""
+    if not obstacles or len(path) < 2:
+        return None
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    within = t_path <= cfg.horizon_s
+    if not within.any():
+        return None
+    path, s, t_path = path[within], s[within], t_path[within]
+    xy = np.array([o.xy for o in obstacles])  # (O, 2)
+    vel = np.array([o.velocity for o in obstacles])
+    dt_obs = np.array([t_now_s - o.t_sim_s for o in obstacles])
+    half = np.array([[o.length_m / 2, o.width_m / 2] for o in obstacles])  # (O, 2)
+    cos_h = np.cos([o.heading_rad for o in obstacles])
+    sin_h = np.sin([o.heading_rad for o in obstacles])
+    offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
+    when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
+    pos = xy[None, None] + vel[None, None] * (when[..., None, None] + dt_obs[None, None, :, None])  # (M, W, O, 2)
+    d = path[:, None, None, :] - pos
+    u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]  # along the obstacle
+    v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]  # across it
+    gap = np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0))  # (M, W, O): point to oriented box
+    hit = (gap < spec.width_m / 2 + cfg.safety_m).any(axis=(1, 2))
+    hit[s < 0.5] = False  # where the vehicle already is
+    if not hit.any():
+        return None
+    return float(s[np.argmax(hit)])
+
+
+def trajectory_of(path: np.ndarray, v0: float, accel: float, v_cruise: float, t_now_s: float,
+                  stop_at_m: float | None, horizon_s: float = 6.0, step_s: float = 1.0) -> np.ndarray:
+    """Waypoints [x, y, t] every ``step_s`` of the planned motion (the control message's)."""
+    t = np.arange(0.0, horizon_s + 1e-9, step_s)
+    if stop_at_m is not None and accel < 0:
+        t_stop = v0 / -accel if accel < 0 else np.inf
+        tt = np.minimum(t, t_stop)
+        s = v0 * tt + 0.5 * accel * tt * tt
+    else:
+        s = np.array([_distance_with(v0, v_cruise, abs(accel) if accel > 0 else 2.0, x) for x in t])
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]) if len(path) > 1 else [0.0]
+    s = np.minimum(s, cum[-1])
+    xy = _point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
+    return np.column_stack([xy, t_now_s + t]).astype(np.float32)
+
+
+def _distance_with(v0: float, v_cruise: float, accel: float, t: float) -> float:
+    if v0 >= v_cruise:
+        return v0 * t
+    t_acc = (v_cruise - v0) / accel
+    if t <= t_acc:
+        return v0 * t + 0.5 * accel * t * t
+    return (v0 + v_cruise) / 2 * t_acc + v_cruise * (t - t_acc)
+
+
+@dataclass
+class Planner:
+    """Path + speed planning for one vehicle; ``run_step`` once per decision interval."""
+
+    mission: Mission
+    config: PlannerConfig = field(default_factory=PlannerConfig)
+    path_planner: PathPlanner = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.path_planner = PathPlanner(np.asarray(self.mission.route, dtype=float), self.mission.spec, self.config)
+
+    def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, obstacles: list[Obstacle],
+                 pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
+        cfg, spec = self.config, self.mission.spec
+        cruise = self.mission.cruise_speed_mps
+        if cruise <= 0.0:  # a waiting vehicle holds still
+            here = np.array([[pose.x_m, pose.y_m]])
+            return Plan(here, -spec.max_brake_mps2, trajectory_of(here, 0.0, 0.0, 0.0, t_now_s, None), None, True)
+        static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
+        path = self.path_planner.plan(grid, static, pose, speed_mps)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+        t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
+        conflict = first_conflict(path, t_path, spec, obstacles, t_now_s, cfg)
+        braking, accel, stop_at = False, cfg.comfort_accel_mps2 * np.sign(cruise - speed_mps), None
+        if abs(cruise - speed_mps) < 0.2:
+            accel = 0.0
+        if conflict is not None:
+            stop_at = max(conflict - spec.length_m / 2 - cfg.stop_buffer_m, 0.0)
+            stopping = speed_mps**2 / (2 * cfg.comfort_brake_mps2)
+            if stop_at <= stopping + speed_mps * 0.1 + 1.0:  # within stopping distance (plus one tick)
+                braking = True
+                accel = -spec.max_brake_mps2 if stop_at < 0.5 else -min(
+                    max(speed_mps**2 / (2 * max(stop_at, 0.1)), cfg.comfort_brake_mps2 * 0.5), spec.max_brake_mps2)
+                if speed_mps < 0.3:
+                    accel = -spec.max_brake_mps2  # hold
+        traj = trajectory_of(path, speed_mps, accel, cruise, t_now_s, stop_at if braking else None)
+        return Plan(path, float(accel), traj, conflict, braking)

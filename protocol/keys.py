@@ -47,6 +47,11 @@ def cmd(run: str, vid: int | str) -> str:
     return f"{_run(run)}/v/{_vid(vid)}/cmd"
 
 
+def report(run: str, vid: int | str) -> str:
+    """The ego's per-tick report of its fused view, for the judge."""
+    return f"{_run(run)}/v/{_vid(vid)}/report"
+
+
 def alive(run: str, vid: int | str) -> str:
     """Liveliness token key: present while the agent's session is up."""
     return f"{_run(run)}/alive/v/{_vid(vid)}"

@@ -276,3 +276,19 @@ class EmpBundle:
     segments: list[EmpSegment]
     site_vids: np.ndarray  # int64 (m,)
     site_xy: np.ndarray  # float64 (m, 2)
+
+
+# ------------------------------------------------------------------ agent -> judge
+
+
+@message(12)
+class AgentReport:
+    """What the ego's fused view held this tick, for the judge's collider-visibility
+    metrics (the world counts the points that fall on the collider's true footprint)."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    fused_xy: np.ndarray  # float32 (n, 2): every above-ground point of the fused view, world frame
+    received_points: int  # how many of them came from other vehicles
+    braking: bool  # the planner is braking for a predicted conflict

@@ -19,7 +19,6 @@ from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
 from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
 
-SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
 
 
 @dataclass
@@ -90,20 +89,14 @@ class Agent:
         n = grid.state.shape[0]
         moving = np.zeros((n, n), dtype=bool)
         obstacles = []
-        spec = self.mission.spec
-        c, s_ = np.cos(view.pose.yaw_rad), np.sin(view.pose.yaw_rad)
         for tr in view.tracks:
             det = tr.detection
             obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
                                       view.t_sim_s, tr.heading_rad))
             if tr.speed_mps > STATIC_MPS:
                 _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
-        for obj in self.dataplane.received.current(view.t_sim_s):
+        for obj in self.dataplane.shared:
             xy = obj.points_world[:, :2]
-            dx, dy = xy[:, 0] - view.pose.x_m, xy[:, 1] - view.pose.y_m
-            on_me = (np.abs(c * dx + s_ * dy) <= spec.length_m / 2 + 0.5) & (np.abs(-s_ * dx + c * dy) <= spec.width_m / 2 + 0.5)
-            if on_me.mean() >= SELF_SHARE:
-                continue  # ourselves, as another vehicle saw us
             center = (xy.min(axis=0) + xy.max(axis=0)) / 2
             extent = xy.max(axis=0) - xy.min(axis=0)
             obstacles.append(Obstacle(center, obj.velocity_xy, float(max(extent.max(), 1.0)),

@@ -17,7 +17,7 @@ from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.control import progress_along
 from vehicle_agent.frames import sensor_to_world, world_to_sensor
-from vehicle_agent.fusion import FusedGrid, ReceivedStore, fuse
+from vehicle_agent.fusion import FusedGrid, ReceivedStore, SharedObject, fuse, not_me
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, extract_objects
 from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
@@ -111,6 +111,7 @@ class DataPlane:
         self.neighbors = NeighborTable()
         self.relevance_mode = relevance_mode
         self.timings_ms: dict[str, float] = {}
+        self.shared: list[SharedObject] = []  # this interval's received objects, placed, ourselves excluded
 
     @contextmanager
     def _timed(self, stage: str):
@@ -198,7 +199,9 @@ class DataPlane:
                     continue
                 self.received.add(obj)
                 fresh.add((obj.sender, obj.object_id))
-            fused = fuse(view.grid, self.received.current(view.t_sim_s, fresh))
+            spec = self.mission.spec
+            self.shared = not_me(self.received.current(view.t_sim_s, fresh), view.pose, spec.length_m, spec.width_m)
+            fused = fuse(view.grid, self.shared)
         return fused, bad
 
 

@@ -19,6 +19,7 @@ from vehicle_agent.payload import ObjectPayload
 from vehicle_agent.perception import ABOVE, Grid
 
 MAX_AGE_S = 1.0
+SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
 
 ObjectKey = tuple[int, int]  # (sender vid, object id)
 
@@ -65,6 +66,18 @@ class FusedGrid:
     state: np.ndarray  # uint8 (n, n): own state with received objects' cells set ABOVE
     received: np.ndarray  # bool (n, n): cells occupied only because of received objects
     same_as_own: dict[ObjectKey, bool]  # received object overlaps something the agent sees itself
+
+
+def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: float = 0.5) -> np.ndarray:
+    """Which world points fall on a vehicle's body at ``pose`` (plus a margin)."""
+    c, s = np.cos(pose.yaw_rad), np.sin(pose.yaw_rad)
+    dx, dy = xy[:, 0] - pose.x_m, xy[:, 1] - pose.y_m
+    return (np.abs(c * dx + s * dy) <= length_m / 2 + margin_m) & (np.abs(-s * dx + c * dy) <= width_m / 2 + margin_m)
+
+
+def not_me(shared: list[SharedObject], pose, length_m: float, width_m: float) -> list[SharedObject]:
+    """Drop the received objects that are this vehicle itself, as another vehicle saw it."""
+    return [o for o in shared if on_body(o.points_world, pose, length_m, width_m).mean() < SELF_SHARE]
 
 
 def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:

@@ -10,9 +10,11 @@ change the current speed cannot take). The path is reused while a fast check fin
 its cells still passable.
 
 Trajectory: the path with arrival times from the speed profile (accelerate to the
-cruise speed at the comfort rate). Every tracked object, own or received, is
+cruise speed at the comfort rate). Every moving object, own or received, is
 extrapolated at constant velocity; a waypoint conflicts when an object's body comes
-within ``safety_m`` of the ego's around the time the ego is there. Bodies: the ego is a
+within ``safety_m`` of the ego's around the time the ego is there. Static obstacles
+are the path's business; where no path avoids them, the first blocked cell on the
+path is a conflict too. Bodies: the ego is a
 circle of its half width on each waypoint, each object its oriented box. The vehicle
 follows the plan until it is within stopping distance of the first conflict, then
 brakes to stop short of it; it resumes when the conflict is gone.
@@ -218,12 +220,17 @@ class PathPlanner:
     config: PlannerConfig = field(default_factory=PlannerConfig)
     path: np.ndarray | None = None
     replans: int = 0
+    blocked: np.ndarray | None = None
 
     def plan(self, grid: Grid, static_obstacles: np.ndarray, pose: Pose, speed_mps: float) -> np.ndarray:
-        """A world-frame path (m, 2) from the vehicle toward the route ahead."""
+        """A world-frame path (m, 2) from the vehicle toward the route ahead.
+
+        ``self.blocked`` keeps the inflated static obstacles the path had to avoid.
+        """
         cfg = self.config
         radius = int(np.ceil((self.spec.width_m / 2 + cfg.margin_m) / grid.spec.cell_m))
         blocked = _inflate(static_obstacles, radius)
+        self.blocked = blocked
         dist = _route_distance(grid, self.route)
         passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
         s_now = _along(self.route, np.array([pose.x_m, pose.y_m]))
@@ -279,6 +286,20 @@ def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ speed / conflicts
+
+
+def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5) -> float | None:
+    """Distance along the path of its first cell inside an (inflated) static obstacle."""
+    if len(path) < 2:
+        return None
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    s = np.arange(0.5, cum[-1], step_m)
+    rc = grid.cell_of(_point_at(path, s))
+    n = blocked.shape[0]
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+    hit = np.zeros(len(s), dtype=bool)
+    hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
+    return float(s[np.argmax(hit)]) if hit.any() else None
 
 
 def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:
@@ -370,7 +391,10 @@ class Planner:
         path = self.path_planner.plan(grid, static, pose, speed_mps)
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
-        conflict = first_conflict(path, t_path, spec, obstacles, t_now_s, cfg)
+        moving = [o for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]
+        conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg),
+                                 first_blocked(path, grid, self.path_planner.blocked)) if c is not None]
+        conflict = min(conflicts) if conflicts else None
         braking, accel, stop_at = False, cfg.comfort_accel_mps2 * np.sign(cruise - speed_mps), None
         if abs(cruise - speed_mps) < 0.2:
             accel = 0.0

@@ -10,8 +10,11 @@ ScenarioRunner criterion, each metric's actual value with its unit:
 - ``safe``: the ego passed the conflict point with room to spare.
 
 Reaction time is the time from the ego's first awareness of the collider (a tick in
-which the collider's points were in its view) to the last moment at which braking at
-its maximum deceleration would still have stopped it before the conflict point.
+which at least 5 of the collider's points were in its view: its fused view, own and
+received points, when the ego agent reports it, else its own LiDAR's) to the last
+moment at which braking at its maximum deceleration would still have stopped it
+before the conflict point. Collider visibility (share of ticks, mean points) is
+measured the same way.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ class Judge:
     _visible_ticks: int = 0
     _ticks: int = 0
     _collider_points: list[int] = field(default_factory=list)
+    _fused_points: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -76,16 +80,35 @@ class Judge:
                 self.closest_m = 0.0 if self.crash_with == c else self.closest_m
                 self.t_end_s = contact.t_sim_s
 
-    def observe_tick(self, phys: Physics, collider_points_in_ego_view: int) -> None:
-        """Once per decision interval: awareness, braking margin, progress, deadlock."""
+    def collider_points_in(self, phys: Physics, xy: np.ndarray, margin_m: float = 0.25) -> int:
+        """How many of the world points ``xy`` lie on the collider's body (plus a margin)."""
+        c = self.col_i
+        spec = phys.specs[c]
+        dx, dy = xy[:, 0] - phys.x[c], xy[:, 1] - phys.y[c]
+        cs, sn = np.cos(phys.yaw[c]), np.sin(phys.yaw[c])
+        u, v = cs * dx + sn * dy, -sn * dx + cs * dy
+        return int(np.count_nonzero((np.abs(u) <= spec.length_m / 2 + margin_m) &
+                                    (np.abs(v) <= spec.width_m / 2 + margin_m)))
+
+    def observe_tick(self, phys: Physics, collider_points_in_ego_view: int,
+                     collider_points_fused: int | None = None) -> None:
+        """Once per decision interval: awareness, braking margin, progress, deadlock.
+
+        ``collider_points_fused`` is the count in the ego agent's fused view (own and
+        received points), when the agent reported it; awareness then uses it.
+        """
         t = phys.t_sim_s
         e, c = self.ego_i, self.col_i
         self._ticks += 1
         self._collider_points.append(collider_points_in_ego_view)
         if collider_points_in_ego_view >= AWARE_MIN_POINTS:
             self._visible_ticks += 1
-            if self._ego_aware_t is None:
-                self._ego_aware_t = t
+        if collider_points_fused is not None:
+            self._fused_points.append(collider_points_fused)
+        aware_now = (collider_points_fused if collider_points_fused is not None
+                     else collider_points_in_ego_view) >= AWARE_MIN_POINTS
+        if aware_now and self._ego_aware_t is None:
+            self._ego_aware_t = t
         d = self._distance(phys)
         if d < self.closest_m:
             self.closest_m, self.closest_t_s = d, t
@@ -126,12 +149,18 @@ class Judge:
         if self._ego_aware_t is not None and self._last_brake_t is not None:
             reaction = round(self._last_brake_t - self._ego_aware_t, 3)
         pts = np.array(self._collider_points or [0])
+        fused = np.array(self._fused_points) if self._fused_points else None
+        own_share = self._visible_ticks / max(self._ticks, 1)
         return {
             "outcome": self.verdict,
             "closest_distance_m": round(self.closest_m, 3),
             "closest_t_s": round(self.closest_t_s, 3),
             "reaction_time_s": reaction,
-            "collider_visible_share_own": round(self._visible_ticks / max(self._ticks, 1), 4),
+            "collider_visible_share": round(float((fused >= AWARE_MIN_POINTS).mean()), 4) if fused is not None
+            else round(own_share, 4),
+            "collider_points_mean": round(float(fused.mean()), 2) if fused is not None else round(float(pts.mean()), 2),
+            "visibility_source": "fused" if fused is not None else "own_lidar",
+            "collider_visible_share_own": round(own_share, 4),
             "collider_points_mean_own": round(float(pts.mean()), 2),
             "crash_with": self.crash_with,
             "t_end_s": round(self.t_end_s, 3),

@@ -23,7 +23,7 @@ import zenoh
 
 from protocol import keys
 from protocol.codec import encode
-from protocol.messages import Command, Outcome, Scan, Tick
+from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
 from protocol.session import DropCounter, big_publisher, typed_handler
 from world_server.sim import Simulation
 
@@ -52,6 +52,7 @@ class WorldServer:
         self._cv = threading.Condition()
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
+        self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
         self._expected = set(sim.connected_vids)
         self._live = set(self._expected)
         self._stopping = threading.Event()
@@ -79,6 +80,8 @@ class WorldServer:
             s.declare_queryable(keys.world_map(run), on_map),
             s.declare_queryable(keys.mission(run, "*"), on_mission),
             s.declare_subscriber(keys.cmd(run, "*"), typed_handler(Command, self._on_cmd, self.drops)),
+            s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid),
+                                 typed_handler(AgentReport, self._on_report, self.drops)),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
         self._tick_pub = s.declare_publisher(keys.world_tick(run))
@@ -108,6 +111,10 @@ class WorldServer:
             if prev is None or cmd.tick >= prev.tick:
                 self._cmds[cmd.vid] = cmd
             self._cv.notify_all()
+
+    def _on_report(self, key: str, report: AgentReport) -> None:
+        with self._cv:
+            self._reports[report.tick] = report
 
     def _mark_dead(self, vid: int, why: str) -> None:
         """Caller holds ``_cv``."""
@@ -167,7 +174,10 @@ class WorldServer:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
         else:
             commands = self._collect_lockstep(k)
-        sim.step(commands)
+        with self._cv:
+            report = self._reports.pop(k, None)
+            self._reports = {t: r for t, r in self._reports.items() if t > k}
+        sim.step(commands, ego_fused_xy=None if report is None else report.fused_xy)
         self.stats.ticks += 1
 
     def _collect_lockstep(self, k: int) -> dict[int, tuple[float, float]]:

@@ -93,11 +93,13 @@ class Simulation:
         self._collider_in_ego_view = int(np.count_nonzero(ego_view.labels == col)) if ego_view else 0
         return views
 
-    def step(self, commands: Mapping[int, tuple[float, float]], dead: Iterable[int] = ()) -> None:
+    def step(self, commands: Mapping[int, tuple[float, float]], dead: Iterable[int] = (),
+             ego_fused_xy: np.ndarray | None = None) -> None:
         """Apply commands for this tick and advance physics by one decision interval.
 
         A connected vehicle without a command (its agent is dead) gets the failsafe:
-        full brake, wheels straight.
+        full brake, wheels straight. ``ego_fused_xy`` is the ego agent's reported fused
+        view for this tick (world points), for the judge's visibility metrics.
         """
         phys = self.physics
         for vid in self.connected_vids:
@@ -111,7 +113,8 @@ class Simulation:
         phys.command(col.vid, *driver.passive_command(
             phys.x[col.vid], phys.y[col.vid], phys.yaw[col.vid], phys.v[col.vid], col.speed_mps, col.route,
             col.spec, self._collider_view.points, col.mount_height_m))
-        self.judge.observe_tick(phys, self._collider_in_ego_view)
+        fused = None if ego_fused_xy is None else self.judge.collider_points_in(phys, ego_fused_xy)
+        self.judge.observe_tick(phys, self._collider_in_ego_view, fused)
         for _ in range(self.substeps):
             phys.step(self.physics_dt_s)
             self.judge.observe_step(phys)

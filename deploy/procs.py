@@ -1,10 +1,10 @@
 """Starting, watching and stopping the processes of a run (openpilot manager style).
 
-A run is a table of ``ProcSpec`` rows; the manager only starts what the table says,
-notices a process that died (the watchdog), and stops everything the same way every
-time: SIGINT, a grace period, then SIGKILL. Each child gets its own session (process
-group), so a Ctrl-C in the terminal reaches the launcher, which then stops children in
-order instead of all of them at once.
+A run is a table of ``ProcSpec`` rows (``deploy/table.py``); the manager only starts
+what the table says, notices a process that died (the watchdog), and stops everything
+the same way every time: SIGINT, a grace period, then SIGKILL. Each child gets its own
+session (process group), so a Ctrl-C in the terminal reaches the launcher only, which
+then stops children in order instead of all of them at once.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,7 @@ class ProcSpec:
     name: str
     module: str
     args: tuple[str, ...] = ()
-    critical: bool = False  # the run cannot go on without it
+    critical: bool = False  # the run cannot reach a judged outcome without it
 
     def argv(self) -> list[str]:
         return [sys.executable, "-m", self.module, *self.args]
@@ -41,6 +42,7 @@ class ProcessManager:
         self._reported: set[str] = set()
 
     def start(self, spec: ProcSpec) -> subprocess.Popen:
+        """Start ``spec``; its stdout and stderr go to ``<log_dir>/<name>.log``."""
         if spec.name in self.procs:
             raise ValueError(f"process {spec.name!r} started twice")
         out = subprocess.DEVNULL
@@ -48,13 +50,21 @@ class ProcessManager:
             self.log_dir.mkdir(parents=True, exist_ok=True)
             out = open(self.log_dir / f"{spec.name}.log", "wb")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(spec.argv(), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True, env=env)
-        if out is not subprocess.DEVNULL:
-            out.close()  # the child holds its own descriptor
+        try:
+            proc = subprocess.Popen(spec.argv(), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    start_new_session=True, env=env)
+        finally:
+            if out is not subprocess.DEVNULL:
+                out.close()  # the child holds its own descriptor
         self.procs[spec.name] = (spec, proc)
         log.debug("started %s (pid %d): %s", spec.name, proc.pid, " ".join(spec.argv()))
         return proc
+
+    def pids(self) -> dict[str, int]:
+        return {name: proc.pid for name, (_, proc) in self.procs.items()}
+
+    def running(self) -> list[str]:
+        return [name for name, (_, proc) in self.procs.items() if proc.poll() is None]
 
     def died(self) -> list[tuple[ProcSpec, int]]:
         """Processes that exited since the last call (watchdog); each reported once."""
@@ -66,9 +76,20 @@ class ProcessManager:
                 out.append((spec, rc))
         return out
 
-    def stop_all(self, grace_s: float = 3.0) -> None:
-        """SIGINT everyone, wait up to ``grace_s``, SIGKILL what is left; reap all."""
-        running = [p for _, p in self.procs.values() if p.poll() is None]
+    def wait(self, names: Iterable[str], timeout_s: float) -> list[str]:
+        """Wait up to ``timeout_s`` for ``names`` to exit on their own; return those still running."""
+        deadline = time.monotonic() + timeout_s
+        left = [n for n in names if n in self.procs]
+        while left:
+            left = [n for n in left if self.procs[n][1].poll() is None]
+            if not left or time.monotonic() >= deadline:
+                break
+            time.sleep(0.05)
+        return left
+
+    def stop(self, names: Iterable[str], grace_s: float = 3.0) -> None:
+        """SIGINT ``names`` together, wait up to ``grace_s``, SIGKILL what is left; reap all."""
+        running = [self.procs[n][1] for n in names if n in self.procs and self.procs[n][1].poll() is None]
         for p in running:
             _signal(p, signal.SIGINT)
         deadline = time.monotonic() + grace_s
@@ -79,6 +100,9 @@ class ProcessManager:
                 log.warning("pid %d ignored SIGINT for %.1f s; killing", p.pid, grace_s)
                 _signal(p, signal.SIGKILL)
                 p.wait()
+
+    def stop_all(self, grace_s: float = 3.0) -> None:
+        self.stop(list(self.procs), grace_s)
 
     def __enter__(self) -> "ProcessManager":
         return self

@@ -1,0 +1,351 @@
+"""The run's recorder: ``python -m deploy.recorder --run-id R --out runs/R/run.mcap``.
+
+One process subscribed to a run's keys (``ac/<run>/...``) writes one MCAP file:
+a channel per key, message encoding ``msgpack`` (the payload bytes exactly as they
+crossed Zenoh, never re-encoded), a schema per message type named after its
+``protocol.messages`` dataclass, log time = receive time (Unix ns), publish time = the
+message's ``t_sim_s`` (ns of sim time). Only the envelope (type id, version, tick,
+t_sim_s) is read, so recording costs one copy per payload. A payload that is not a
+valid envelope is still written, raw, on a schemaless channel of the same topic, and
+counted. LiDAR scans (~1.3 MB per vehicle per tick) are kept for the ego only by
+default (``--scans ego|all|none``).
+
+The file is always finalized (summary and index written): on SIGINT or SIGTERM, a short
+drain after the world's outcome, or when the hub has been gone for a few seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import io
+import json
+import logging
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import zenoh
+from mcap.writer import CompressionType, Writer
+
+from protocol import keys
+from protocol.codec import _REGISTRY, MalformedMessage, decode
+from protocol.messages import Tick
+from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
+
+log = logging.getLogger("deploy.recorder")
+
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "autocast-dataclass"  # JSON: type id, version, field names and types
+METADATA_NAME = "autocast"
+STATS_NAME = "autocast.recorder"
+SCAN_CHOICES = ("ego", "all", "none")
+EGO_VID = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RecorderConfig:
+    run_id: str
+    path: Path
+    scans: str = "ego"
+    metadata: dict[str, str] = field(default_factory=dict)
+    compression: str = "zstd"
+    drain_s: float = 1.0  # keep recording this long after the outcome
+    hub_lost_s: float = 3.0  # finalize when no hub was connected for this long
+
+
+@dataclass(frozen=True, slots=True)
+class Envelope:
+    """What the recorder reads of a payload: its message class and timing."""
+
+    cls: type
+    tick: int
+    t_sim_s: float
+
+
+def peek_envelope(payload: bytes) -> Envelope | None:
+    """The type, tick and sim time at the head of a message; ``None`` if it is no valid envelope.
+
+    Reads a few dozen bytes whatever the payload's size.
+    """
+    unpacker = msgpack.Unpacker(io.BytesIO(payload), read_size=64, raw=False, strict_map_key=False)
+    try:
+        n = unpacker.read_array_header()
+        type_id, version, tick, t_sim_s = (unpacker.unpack() for _ in range(4))
+    except Exception:  # msgpack raises several unrelated exception types
+        return None
+    cls = _REGISTRY.get(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
+    if cls is None or version != cls.VERSION or n != 2 + len(dataclasses.fields(cls)):
+        return None
+    if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
+        return None
+    return Envelope(cls, tick, float(t_sim_s))
+
+
+def schema_of(cls: type) -> bytes:
+    """The schema data of a message type: how to read its msgpack array."""
+    hints = typing.get_type_hints(cls)
+    fields = [{"name": f.name, "type": _type_name(hints[f.name])} for f in dataclasses.fields(cls)]
+    return json.dumps({"type_id": cls.TYPE_ID, "version": cls.VERSION, "module": cls.__module__,
+                       "wire": "msgpack array [type_id, version, *fields]; numpy arrays as [dtype, shape, bytes]",
+                       "fields": fields}).encode()
+
+
+def _type_name(hint: typing.Any) -> str:
+    return hint.__name__ if isinstance(hint, type) and not typing.get_args(hint) else str(hint).replace("typing.", "")
+
+
+def subscriptions(run: str, scans: str) -> list[str]:
+    """The key expressions to record.
+
+    ``scans="all"``: the whole run (``ac/<run>/**``). Otherwise every key that a
+    ``protocol.keys`` function builds (``*`` for vehicle ids), with the scans narrowed to
+    the ego's or none: a subscriber on ``ac/<run>/**`` would make the hub forward every
+    vehicle's 1.3 MB scan to the recorder only for it to be dropped, and that traffic
+    measurably slowed runs and crowded out small ``DROP`` messages (commands).
+    """
+    if scans == "all":
+        return [keys.everything(run)]
+    skip = {keys.everything(run), keys.scan(run, "*")}
+    out = {keys.scan(run, EGO_VID)} if scans == "ego" else set()
+    for name, fn in inspect.getmembers(keys, inspect.isfunction):
+        params = list(inspect.signature(fn).parameters)
+        if fn.__module__ != keys.__name__ or name.startswith("_") or params[:1] != ["run"]:
+            continue
+        try:
+            key = fn(run, *["*"] * (len(params) - 1))
+        except (TypeError, ValueError):
+            continue
+        if key not in skip:
+            out.add(key)
+    return sorted(out)
+
+
+def git_revision() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
+                             text=True, timeout=5)
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
+@dataclass
+class RecorderStats:
+    messages: int = 0
+    bytes: int = 0
+    malformed: int = 0
+    per_topic: dict[str, int] = field(default_factory=dict)
+
+    def as_metadata(self) -> dict[str, str]:
+        return {"messages": str(self.messages), "bytes": str(self.bytes), "malformed": str(self.malformed),
+                "topics": str(len(self.per_topic))}
+
+
+class McapLog:
+    """An MCAP writer with a channel per (key, message type) and a schema per type."""
+
+    def __init__(self, stream: typing.BinaryIO, metadata: dict[str, str], compression: str = "zstd") -> None:
+        kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        self.writer = Writer(stream, compression=kind)
+        self.writer.start(profile="", library="autocast-recorder")
+        self.writer.add_metadata(METADATA_NAME, metadata)
+        self.schemas: dict[type, int] = {}
+        self.channels: dict[tuple[str, type | None], int] = {}
+        self.stats = RecorderStats()
+
+    def write(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        env = peek_envelope(payload)
+        if env is None:
+            self.stats.malformed += 1
+            if self.stats.malformed == 1 or self.stats.malformed % 100 == 0:
+                log.warning("malformed payload #%d on %s (recorded raw)", self.stats.malformed, key)
+        channel = self._channel(key, env.cls if env else None)
+        publish_ns = int(round(env.t_sim_s * 1e9)) if env and env.t_sim_s >= 0 else log_time_ns
+        seq = self.stats.per_topic.get(key, 0)
+        self.writer.add_message(channel, log_time=log_time_ns, data=payload, publish_time=publish_ns, sequence=seq)
+        self.stats.per_topic[key] = seq + 1
+        self.stats.messages += 1
+        self.stats.bytes += len(payload)
+
+    def _channel(self, key: str, cls: type | None) -> int:
+        got = self.channels.get((key, cls))
+        if got is None:
+            if cls is None:
+                got = self.writer.register_channel(key, MESSAGE_ENCODING, 0, {"malformed": "true"})
+            else:
+                got = self.writer.register_channel(key, MESSAGE_ENCODING, self._schema(cls),
+                                                   {"type_id": str(cls.TYPE_ID), "version": str(cls.VERSION)})
+            self.channels[(key, cls)] = got
+        return got
+
+    def _schema(self, cls: type) -> int:
+        got = self.schemas.get(cls)
+        if got is None:
+            got = self.schemas[cls] = self.writer.register_schema(cls.__name__, SCHEMA_ENCODING, schema_of(cls))
+        return got
+
+    def finish(self) -> None:
+        self.writer.add_metadata(STATS_NAME, self.stats.as_metadata())
+        self.writer.finish()
+
+
+class Recorder:
+    """Subscribes to a run's keys and hands payloads to the writer (the caller's thread).
+
+    The map and the missions are served by queries, not published: once the first tick
+    shows the world is up, a helper thread fetches them so the log is self-contained.
+    """
+
+    def __init__(self, cfg: RecorderConfig, session: zenoh.Session, stop: threading.Event) -> None:
+        self.cfg = cfg
+        self.session = session
+        self.stop = stop
+        self._inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._outcome_at: float | None = None
+        self._first_tick: bytes | None = None
+        self._outcome_key = keys.world_outcome(cfg.run_id)
+        self._tick_key = keys.world_tick(cfg.run_id)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        self._inbox.put((key, payload, time.time_ns()))
+        with self._lock:
+            if key == self._outcome_key and self._outcome_at is None:
+                self._outcome_at = time.monotonic()
+            if key == self._tick_key and self._first_tick is None:
+                self._first_tick = payload
+
+    def run(self, out: McapLog) -> None:
+        """Record until stopped, the outcome has drained, or the hub is gone."""
+        exprs = subscriptions(self.cfg.run_id, self.cfg.scans)
+        subs = [self.session.declare_subscriber(expr, self._on_sample) for expr in exprs]
+        log.info("recording into %s: %s", self.cfg.path, " ".join(exprs))
+        fetcher: threading.Thread | None = None
+        hub_seen = last_check = time.monotonic()
+        try:
+            while not self.stop.is_set():
+                self._drain(out, timeout_s=0.2)
+                now = time.monotonic()
+                with self._lock:
+                    outcome_at, first_tick = self._outcome_at, self._first_tick
+                if fetcher is None and first_tick is not None:
+                    fetcher = threading.Thread(target=self._fetch_static, args=(first_tick,), daemon=True)
+                    fetcher.start()
+                if outcome_at is not None and now - outcome_at >= self.cfg.drain_s:
+                    log.info("outcome recorded; finishing")
+                    break
+                if now - last_check >= 0.5:
+                    last_check = now
+                    if self.session.info.routers_zid():
+                        hub_seen = now
+                    elif now - hub_seen > self.cfg.hub_lost_s:
+                        log.warning("hub gone for %.0f s; finishing", self.cfg.hub_lost_s)
+                        break
+        finally:
+            for sub in subs:
+                sub.undeclare()
+            if fetcher is not None:
+                fetcher.join(timeout=3.0)
+            self._drain(out, timeout_s=0.0)
+
+    def _fetch_static(self, first_tick: bytes) -> None:
+        """Record the map and every live vehicle's mission, as the world serves them."""
+        try:
+            live = decode(first_tick, Tick).live
+        except MalformedMessage:
+            return
+        run = self.cfg.run_id
+        for key in [keys.world_map(run), *(keys.mission(run, vid) for vid in live)]:
+            try:
+                for reply in self.session.get(key, timeout=2.0):
+                    if reply.ok is not None:
+                        self._inbox.put((str(reply.ok.key_expr), reply.ok.payload.to_bytes(), time.time_ns()))
+            except zenoh.ZError as exc:
+                log.warning("query %s: %s", key, exc)
+
+    def _drain(self, out: McapLog, timeout_s: float) -> None:
+        try:
+            item = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
+            while True:
+                out.write(*item)
+                item = self._inbox.get_nowait()
+        except queue.Empty:
+            return
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m deploy.recorder", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run-id", required=True, help="the run's id (records ac/<run>/**)")
+    ap.add_argument("--out", required=True, type=Path, metavar="FILE", help="the MCAP file to write")
+    ap.add_argument("--scans", choices=SCAN_CHOICES, default="ego",
+                    help="LiDAR scans to keep: the ego's only (default), every vehicle's, or none")
+    ap.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                    help=f"an entry of the '{METADATA_NAME}' metadata record (scenario, seed, scheme, ...)")
+    ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    ap.add_argument("--drain-s", type=float, default=1.0, help="keep recording this long after the outcome")
+    ap.add_argument("--log-level", default="INFO")
+    add_zenoh_args(ap)
+    return ap.parse_args(argv)
+
+
+def metadata_from(args: argparse.Namespace) -> dict[str, str]:
+    meta = {"run_id": args.run_id, "scans": args.scans}
+    for item in args.meta:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"meta: {item!r} is not KEY=VALUE")
+        meta[name] = value
+    meta["git_revision"] = git_revision()
+    meta["recorded_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    return meta
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s recorder %(levelname)s %(message)s")
+    try:
+        keys.everything(args.run_id)
+        cfg = RecorderConfig(args.run_id, args.out, args.scans, metadata_from(args), args.compression, args.drain_s)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    cfg.path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        return record(cfg, zenoh_args_from(args), stop)
+    except ConnectionError as exc:  # no hub within the startup timeout
+        log.error("%s", exc)
+        return 3
+
+
+def record(cfg: RecorderConfig, zargs: ZenohArgs, stop: threading.Event) -> int:
+    """Record one run into ``cfg.path`` until ``stop``; the file is finalized whatever ends the run."""
+    with session_scope(zargs) as session, open(cfg.path, "wb") as stream:
+        recorder = Recorder(cfg, session, stop)
+        out = McapLog(stream, cfg.metadata, cfg.compression)
+        try:
+            recorder.run(out)
+        finally:
+            out.finish()
+            s = out.stats
+            log.info("wrote %s: %d messages, %.1f MB, %d topics, %d malformed", cfg.path, s.messages, s.bytes / 1e6,
+                     len(s.per_topic), s.malformed)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

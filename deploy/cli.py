@@ -14,6 +14,8 @@ BENCHES = ("lidar", "perception", "scheduler")
 USAGE = """usage: autocast <command> [args]
 
 commands:
+  run [flags]            one run: world, channel proxy, one agent per connected vehicle
+                         and the MCAP recorder as processes (autocast run --help)
   world [flags]          run the world server with lane-following test agents
                          (python -m world_server --help for the flags)
   bench NAME [--quick]   print benchmark figures; NAME is one of: {benches}
@@ -26,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
         print(USAGE)
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
+    if cmd == "run":
+        from deploy.run import main as run_main
+        return run_main(rest)
     if cmd == "world":
         from world_server.__main__ import main as world_main
         return world_main(rest)

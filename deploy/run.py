@@ -1,0 +1,401 @@
+"""``autocast run``: one run of a scenario, every participant its own OS process.
+
+The launcher validates every flag before anything starts, warms the numba caches once,
+becomes the run's Zenoh hub (a router on a free loopback port), and starts what
+``deploy.table.processes`` lists: the recorder first (and waits until its subscription
+has reached the hub), then the world, the channel proxy and one agent per connected
+vehicle. It waits for the world's judged ``Outcome``, watches the processes meanwhile
+(the world dying without an outcome fails the run; a dead agent is the world's
+business), stops everything (SIGINT, grace, SIGKILL; the world first, the recorder
+last) and prints the outcome.
+
+Outputs: ``runs/<id>/run.mcap``, ``runs/<id>/outcome.json``, ``runs/<id>/pids.json``,
+``runs/<id>/logs/<process>.log``. Exit code: 0 safe passage, 1 another judged outcome,
+2 bad input, 3 the run failed without an outcome, 130 interrupted (Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import secrets
+import signal
+import socket
+import sys
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, NoReturn
+
+import zenoh
+
+from deploy import table
+from deploy.procs import ProcessManager
+from protocol import keys
+from protocol.messages import Outcome, Scan
+from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
+from world_server.__main__ import summary
+from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
+
+log = logging.getLogger("deploy.run")
+
+EXIT_SAFE, EXIT_JUDGED, EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+RECORDER_READY_TIMEOUT_S = 30.0
+SETTLE_S = 5.0  # after the outcome, processes get this long to exit on their own
+CRITICAL_EXIT_WAIT_S = 2.0  # a critical process may exit just before its outcome reaches us
+GRACE_S = 3.0
+
+
+class InputError(ValueError):
+    """A bad flag or scenario value; the message starts with the field's name."""
+
+
+@dataclass(frozen=True, slots=True)
+class LaunchOptions:
+    """The launcher's own knobs (the processes' knobs are in ``table.RunConfig``)."""
+
+    run: table.RunConfig
+    timeout_s: float  # wall clock; no outcome by then fails the run
+    warm_up: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class RunResult:
+    exit_code: int
+    result: dict[str, Any] | None  # the judged outcome (plus scheme, run_dir, mcap)
+    failure: str | None = None
+
+
+# ---------------------------------------------------------------------------- input
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_BAD_INPUT, f"error: {message}\n")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    from vehicle_agent.__main__ import SCHEMES
+
+    ap = _Parser(prog="autocast run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sc = ap.add_argument_group("scenario (python -m world_server --help)")
+    sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn)")
+    sc.add_argument("--vehicles", default="10", help="connected vehicles in range, ego included (default 10)")
+    sc.add_argument("--collider-speed", default="30", metavar="KMH", help="the collider's speed (default 30)")
+    sc.add_argument("--delta", default="0", metavar="SECONDS",
+                    help="collider reaches the conflict point this long after the ego (default 0)")
+    sc.add_argument("--seed", default="0", help="background placement and channel loss (default 0)")
+    sc.add_argument("--duration", default="20", metavar="SECONDS", help="sim time limit (default 20)")
+    ap.add_argument("--scheme", default="autocast", help=f"{' | '.join(SCHEMES)} (default autocast)")
+    ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
+    ap.add_argument("--json", action="store_true", help="end stdout with the outcome as one JSON line")
+    ap.add_argument("--out", default="runs", metavar="DIR", help="runs go to DIR/<run id>/ (default runs/)")
+    ap.add_argument("--run-id", default=None, help="default: <date>-<time>-<4 hex>")
+    ap.add_argument("--scans", default="ego", help="LiDAR scans the recorder keeps: ego (default) | all | none")
+    ap.add_argument("--agent-timeout-s", default="10", help="wall time an agent may take for a tick before "
+                    "the world declares it dead (default 10)")
+    ap.add_argument("--timeout-s", default="900", help="wall-clock limit for the whole run (default 900)")
+    ap.add_argument("--no-warm-up", action="store_true", help="skip warming the numba caches")
+    ap.add_argument("--log-level", default="INFO", help="the launcher's, world's, proxy's and recorder's")
+    return ap.parse_args(argv)
+
+
+def _number(field: str, text: str, kind: type) -> Any:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise InputError(f"{field}: {text!r} is not {'an integer' if kind is int else 'a number'}") from None
+    if kind is float and not math.isfinite(value):
+        raise InputError(f"{field}: {text!r} is not a finite number")
+    return value
+
+
+def _one_of(field: str, value: str, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise InputError(f"{field}: {value!r} is not one of {', '.join(choices)}")
+    return value
+
+
+def scenario_from(args: argparse.Namespace) -> ScenarioParams:
+    """The validated scenario: field names and messages are ``world_server.scenarios``'s."""
+    values = {"scenario": args.scenario, "vehicles": _number("vehicles", args.vehicles, int),
+              "collider_speed_kmh": _number("collider_speed_kmh", args.collider_speed, float),
+              "delta_s": _number("delta_s", args.delta, float), "seed": _number("seed", args.seed, int),
+              "duration_s": _number("duration_s", args.duration, float)}
+    try:
+        params = params_from_dict(values)
+        table.connected_vids(params)  # building the scenario catches what the ranges cannot
+    except ScenarioError as exc:
+        raise InputError(str(exc)) from None
+    return params
+
+
+def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
+    """Every flag checked, nothing started; raises ``InputError`` naming the field."""
+    from vehicle_agent.__main__ import SCHEMES
+
+    params = scenario_from(args)
+    scheme = _one_of("scheme", args.scheme, SCHEMES)
+    scans = _one_of("scans", args.scans, ("ego", "all", "none"))
+    level = _one_of("log_level", args.log_level.upper(), ("DEBUG", "INFO", "WARNING", "ERROR"))
+    agent_timeout_s = _positive("agent_timeout_s", _number("agent_timeout_s", args.agent_timeout_s, float))
+    timeout_s = _positive("timeout_s", _number("timeout_s", args.timeout_s, float))
+    run_id = args.run_id or time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
+    try:
+        keys.everything(run_id)
+    except ValueError as exc:
+        raise InputError(f"run_id: {exc}") from None
+    run_dir = Path(args.out) / run_id
+    if run_dir.exists():
+        raise InputError(f"run_id: {run_dir} already exists")
+    cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
+                          agent_timeout_s=agent_timeout_s, log_level=level)
+    return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
+
+
+def _positive(field: str, value: float) -> float:
+    if value <= 0:
+        raise InputError(f"{field}: {value!r} is not > 0")
+    return value
+
+
+# ---------------------------------------------------------------------------- pieces
+
+
+def free_endpoint() -> str:
+    """A loopback endpoint nobody listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def warm_numba_caches(params: ScenarioParams) -> None:
+    """Compile (or load) every numba kernel once here, so N processes load them from the cache.
+
+    The agent's kernels are reached through ``vehicle_agent.warm_up()`` when the agent
+    provides it, otherwise through one data-plane pass on the scenario's first scans
+    and the scheduler bench's warm-up. A failure only costs the agents compile time.
+    """
+    from world_server import lidar
+    from world_server.sim import Simulation
+
+    t0 = time.perf_counter()
+    sim = Simulation(params)
+    lidar.warm_up(sim.lidar_cfg)
+    try:
+        _warm_agent_kernels(sim)
+    except Exception:  # warming is an optimisation; the agents compile what is missing
+        log.warning("agent kernels not warmed; each agent compiles its own", exc_info=True)
+    log.info("numba caches warm in %.1f s", time.perf_counter() - t0)
+
+
+def _warm_agent_kernels(sim) -> None:
+    import vehicle_agent
+
+    hook = getattr(vehicle_agent, "warm_up", None)
+    if callable(hook):
+        hook()
+        return
+    from bench.scheduler import warm_up as warm_scheduler
+    from vehicle_agent.dataplane import DataPlane, lane_trajectory
+
+    mapmsg = sim.scenario.roadmap.to_msg()
+    vids = sim.connected_vids[:2]
+    views = sim.sense(vids)
+    planes = {vid: DataPlane(sim.mission(vid), mapmsg) for vid in vids}
+    heard: list[int] = []
+    for vid in vids:
+        v, actor = views[vid], sim.scenario.actors[vid]
+        scan = Scan(0, 0.0, vid, v.pose, v.speed_mps, v.points)
+        view = planes[vid].perceive(scan)
+        traj = lane_trajectory(actor.route, v.pose, actor.speed_mps, 0.0)
+        msg = planes[vid].control_message(view, scan, traj, heard)
+        for other in vids:
+            planes[other].neighbors.update([msg])
+        heard.append(vid)
+    warm_scheduler()
+
+
+def open_hub(stack: ExitStack, tries: int = 5) -> tuple[zenoh.Session, str]:
+    """The launcher's router session on a free loopback port, closed with ``stack``."""
+    for attempt in range(tries):
+        endpoint = free_endpoint()
+        try:
+            return stack.enter_context(session_scope(ZenohArgs(listen=(endpoint,)), wait_s=0.0)), endpoint
+        except ConnectionError:  # somebody took the port in between
+            if attempt == tries - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManager, timeout_s: float,
+                        stop: threading.Event) -> bool:
+    """True once a subscriber matching the world's tick key is on the hub (only the recorder is up)."""
+    probe = session.declare_publisher(keys.world_tick(run_id))
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not probe.matching_status.matching:
+            if stop.is_set() or time.monotonic() > deadline or table.RECORDER not in procs.running():
+                return False
+            time.sleep(0.02)
+        return True
+    finally:
+        probe.undeclare()
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+class Launcher:
+    """Starts the table's processes for one run and sees them through to the outcome."""
+
+    def __init__(self, opts: LaunchOptions, session: zenoh.Session, stop: threading.Event) -> None:
+        self.opts = opts
+        self.cfg = opts.run
+        self.session = session
+        self.stop = stop
+        self.outcome: Outcome | None = None
+        self._got_outcome = threading.Event()
+        self._drops = DropCounter()
+        self.procs = ProcessManager(self.cfg.log_dir)
+
+    def _on_outcome(self, key: str, msg: Outcome) -> None:
+        if self.outcome is None:
+            self.outcome = msg
+            self._got_outcome.set()
+
+    def run(self) -> RunResult:
+        cfg = self.cfg
+        specs = table.processes(cfg)
+        sub = self.session.declare_subscriber(keys.world_outcome(cfg.run_id),
+                                              typed_handler(Outcome, self._on_outcome, self._drops))
+        try:
+            failure = self._start(specs)
+            if failure is None:
+                failure = self._watch()
+        finally:
+            self._shutdown(specs)
+            sub.undeclare()
+        return self._result(failure)
+
+    def _start(self, specs: list) -> str | None:
+        recorder, rest = specs[0], specs[1:]
+        assert recorder.name == table.RECORDER, "the table starts with the recorder"
+        t0 = time.monotonic()
+        self.procs.start(recorder)
+        if not wait_recorder_ready(self.session, self.cfg.run_id, self.procs, RECORDER_READY_TIMEOUT_S, self.stop):
+            return None if self.stop.is_set() else "the recorder did not come up (see logs/recorder.log)"
+        for spec in rest:
+            if self.stop.is_set():
+                return None
+            self.procs.start(spec)
+        self._write_pids()
+        log.info("%d processes up in %.1f s: %s", len(specs), time.monotonic() - t0, " ".join(s.name for s in specs))
+        return None
+
+    def _write_pids(self) -> None:
+        (self.cfg.run_dir / "pids.json").write_text(json.dumps(self.procs.pids(), indent=1) + "\n")
+
+    def _watch(self) -> str | None:
+        """Wait for the outcome; a failure message if the run cannot reach one."""
+        deadline = time.monotonic() + self.opts.timeout_s
+        while not self._got_outcome.wait(0.1):
+            if self.stop.is_set():
+                return None
+            for spec, rc in self.procs.died():
+                if not spec.critical:
+                    log.log(logging.WARNING if rc else logging.DEBUG, "%s exited (code %d); the world carries on",
+                            spec.name, rc)
+                elif not self._got_outcome.wait(CRITICAL_EXIT_WAIT_S):
+                    return f"{spec.name} exited (code {rc}) before the outcome; see {self.cfg.log_dir / spec.name}.log"
+            if time.monotonic() > deadline:
+                return f"no outcome within {self.opts.timeout_s:.0f} s of wall time"
+        return None
+
+    def _shutdown(self, specs: list) -> None:
+        """Let everyone finish on its own briefly, then stop: the world, the others, the recorder."""
+        names = [s.name for s in specs if s.name in self.procs.procs]
+        if self._got_outcome.is_set() and not self.stop.is_set():
+            self.procs.wait(names, SETTLE_S)
+        elif self.procs.running():  # interrupted or failed: the world judges what happened so far
+            self.procs.stop([table.WORLD], GRACE_S)
+            self._got_outcome.wait(1.0)
+        others = [n for n in names if n not in (table.WORLD, table.RECORDER)]
+        self.procs.stop(others, GRACE_S)
+        self.procs.stop([table.WORLD], GRACE_S)
+        self.procs.stop([table.RECORDER], GRACE_S + 2.0)  # it finalizes the MCAP
+
+    def _result(self, failure: str | None) -> RunResult:
+        interrupted = self.stop.is_set() and failure is None
+        if self.outcome is None:
+            if interrupted:
+                return RunResult(EXIT_INTERRUPTED, None, "interrupted before an outcome")
+            return RunResult(EXIT_FAILED, None, failure or "the world never published an outcome")
+        result = dict(self.outcome.result)
+        result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
+                       "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None})
+        if interrupted:
+            result["interrupted"] = True
+            return RunResult(EXIT_INTERRUPTED, result)
+        return RunResult(EXIT_SAFE if result.get("outcome") == "safe" else EXIT_JUDGED, result)
+
+
+def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
+    """One run from validated options; ``stop`` (Ctrl-C) ends it early and cleanly."""
+    opts.run.log_dir.mkdir(parents=True, exist_ok=False)
+    if opts.warm_up:
+        warm_numba_caches(opts.run.params)
+    with ExitStack() as stack:
+        session, endpoint = open_hub(stack)
+        opts = replace(opts, run=replace(opts.run, hub=endpoint))
+        return Launcher(opts, session, stop).run()
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper() if args.log_level.upper() in logging.getLevelNamesMapping()
+                        else "INFO", format="autocast run: %(message)s")
+    try:
+        opts = options_from(args, hub="")
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    t0 = time.monotonic()
+    log.info("run %s: %s, %d vehicles, scheme %s -> %s", opts.run.run_id, opts.run.params.scenario,
+             opts.run.params.vehicles, opts.run.scheme, opts.run.run_dir)
+    outcome = launch(opts, stop)
+    return report(outcome, opts.run, args.json, time.monotonic() - t0)
+
+
+def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -> int:
+    """Print the outcome, write ``outcome.json``; return the exit code.
+
+    A run that failed without an outcome still writes (and with ``--json`` prints) a
+    record with ``"outcome": null`` and the reason, so sweeps can count it.
+    """
+    record = res.result
+    if record is not None:
+        mark = ", interrupted" if record.get("interrupted") else ""
+        print(summary(record) + f"  [{cfg.scheme}, {wall_s:.1f} s total{mark}]")
+    else:
+        record = {"outcome": None, "failure": res.failure, "scenario": cfg.params.scenario,
+                  "vehicles": cfg.params.vehicles, "seed": cfg.params.seed, "scheme": cfg.scheme,
+                  "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
+                  "mcap": str(cfg.mcap_path) if cfg.mcap_path.exists() else None}
+        print(f"run failed: {res.failure}", file=sys.stderr)
+    if cfg.run_dir.is_dir():
+        (cfg.run_dir / "outcome.json").write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
+    if as_json:
+        print(json.dumps(record, allow_nan=False), flush=True)
+    return res.exit_code

@@ -1,0 +1,109 @@
+"""The one table of a run's processes (openpilot's process_config).
+
+``processes(cfg)`` says, for one run, which processes exist and with which flags: the
+recorder, the world, the channel proxy (every scheme that shares) and one agent per
+connected vehicle. The launcher (``deploy/run.py``) only starts, watches and stops
+what this table returns; nothing else decides what a run is made of.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+from deploy.procs import ProcSpec
+from world_server.scenarios import ScenarioParams, build
+
+RECORDER = "recorder"
+WORLD = "world"
+PROXY = "proxy"
+NO_PROXY_SCHEMES = ("single",)  # no V2V: nothing for a channel to carry
+EMP_SCHEME = "emp"  # the paper's EMP baseline: the proxy plays the edge relay
+
+
+@dataclass(frozen=True, slots=True)
+class RunConfig:
+    """Everything that defines one run's processes."""
+
+    run_id: str
+    hub: str  # the launcher's Zenoh endpoint; every process connects to it
+    params: ScenarioParams
+    scheme: str
+    run_dir: Path  # runs/<id>
+    realtime: bool = False
+    scans: str = "ego"  # which LiDAR scans the recorder keeps
+    agent_timeout_s: float = 10.0
+    log_level: str = "INFO"  # world, proxy, recorder
+    agent_log_level: str = "WARNING"  # N agents at INFO would bury the other logs
+
+    @property
+    def mcap_path(self) -> Path:
+        return self.run_dir / "run.mcap"
+
+    @property
+    def log_dir(self) -> Path:
+        return self.run_dir / "logs"
+
+
+def processes(cfg: RunConfig) -> list[ProcSpec]:
+    """The run's processes, in start order; the recorder comes first."""
+    table = [
+        ProcSpec(RECORDER, "deploy.recorder", recorder_args(cfg), critical=True),
+        ProcSpec(WORLD, "world_server", world_args(cfg), critical=True),
+    ]
+    if needs_proxy(cfg.scheme):
+        table.append(ProcSpec(PROXY, "channel_proxy", proxy_args(cfg), critical=True))
+    table += [ProcSpec(agent_name(vid), "vehicle_agent", agent_args(cfg, vid)) for vid in connected_vids(cfg.params)]
+    return table
+
+
+def agent_name(vid: int) -> str:
+    return f"agent{vid}"
+
+
+@functools.lru_cache(maxsize=8)
+def connected_vids(params: ScenarioParams) -> tuple[int, ...]:
+    """The connected vehicles' ids; building the scenario also validates it (``ScenarioError``)."""
+    return tuple(a.vid for a in build(params).connected())
+
+
+def needs_proxy(scheme: str) -> bool:
+    """Every scheme that shares needs the medium (``emp``: the proxy's edge-relay mode)."""
+    return scheme not in NO_PROXY_SCHEMES
+
+
+def _common(cfg: RunConfig) -> tuple[str, ...]:
+    return ("--run-id", cfg.run_id, "--connect", cfg.hub)
+
+
+def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
+    p = cfg.params
+    meta = {"scenario": p.scenario, "vehicles": p.vehicles, "seed": p.seed, "scheme": cfg.scheme,
+            "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
+            "mode": "realtime" if cfg.realtime else "lockstep"}
+    flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
+    return (*_common(cfg), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level, *flags)
+
+
+def world_args(cfg: RunConfig) -> tuple[str, ...]:
+    p = cfg.params
+    flags = [*_common(cfg), "--agents", "external", "--json", "--log-level", cfg.log_level,
+             "--scenario", p.scenario, "--vehicles", str(p.vehicles), "--collider-speed", str(p.collider_speed_kmh),
+             "--delta", str(p.delta_s), "--seed", str(p.seed), "--duration", str(p.duration_s),
+             "--agent-timeout-s", str(cfg.agent_timeout_s)]
+    if cfg.realtime:
+        flags.append("--realtime")
+    return tuple(flags)
+
+
+def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
+    flags = [*_common(cfg), "--seed", str(cfg.params.seed), "--log-level", cfg.log_level,
+             "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v"]
+    if cfg.realtime:
+        flags.append("--realtime")
+    return tuple(flags)
+
+
+def agent_args(cfg: RunConfig, vid: int) -> tuple[str, ...]:
+    return (*_common(cfg), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level", cfg.agent_log_level)

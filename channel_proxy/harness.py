@@ -100,6 +100,16 @@ class Harness:
 
     # ------------------------------------------------------------------ waiting
 
+    def wait_proxy(self, timeout_s: float = 30.0) -> None:
+        """Block until the proxy's liveliness token is up (it declares it last, once subscribed)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            replies = list(self.session.liveliness().get(keys.proxy_alive(self.run), timeout=1.0))
+            if any(r.ok is not None for r in replies):
+                return
+            time.sleep(0.05)
+        raise TimeoutError("no channel proxy came up")
+
     def _wait(self, done, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         with self._cv:

@@ -6,15 +6,17 @@ agents may read it to fill ``p_deliver`` when they build a scheduling instance.
 Curve ``shadowed`` (default), in the spirit of 3GPP TR 36.885's evaluation method:
 received SNR falls with the WINNER+ B1 slope beyond the breakpoint (``10 n log10 d``,
 n = 4) and is spread by log-normal shadowing of ``sigma_db``; a packet is received when
-the SNR exceeds the QPSK threshold. With R the distance at which the median SNR meets
-the threshold (the nominal radio range),
+the SNR exceeds the QPSK threshold. With R the nominal radio range, where the PRR is
+still ``prr_at_range`` (0.9),
 
-    PRR(d) = Phi(10 n log10(R / d) / sigma_db)
+    PRR(d) = Phi(z_R + 10 n log10(R / d) / sigma_db),   z_R = Phi^-1(prr_at_range)
 
-so PRR(R) = 0.5; with R = 170 m (urban), n = 4, sigma = 4 dB: 0.99 at 100 m, 0.71 at
-150 m, 0.26 at 200 m. Curve ``logistic`` is 1 / (1 + exp((d - R) / spread_m)); curve
-``fixed`` is a constant ``p_fixed`` at every distance. Beyond ``cutoff_m`` (default 2R)
-p is exactly 0 and the sender does not interfere either: that receiver is out of range.
+With R = 170 m (urban), n = 4, sigma = 4 dB: 0.9998 at 100 m, 0.90 at 170 m, 0.72 at
+200 m, 0.35 at 250 m, 0.12 at 300 m. Curve ``logistic`` is 1 / (1 + exp((d - d50) /
+spread_m)) with d50 placed so that PRR(R) = ``prr_at_range``; curve ``fixed`` is a
+constant ``p_fixed`` up to R. Beyond ``cutoff_m`` p is exactly 0 and the sender does not
+interfere either: that receiver is out of range. The default cutoff is where the PRR
+falls below 0.001 (465 m for the defaults; R for ``fixed``).
 
 Draws are counter-based, not sequential: a loss decision is a hash of
 (seed, tick, channel, sender, receiver, item), so the outcome of one packet never
@@ -30,6 +32,7 @@ import numpy as np
 
 CURVES = ("shadowed", "logistic", "fixed")
 _GRID_POINTS = 4097
+_FLOOR = 0.001  # the default cutoff: where the PRR falls below this
 
 # channel ids in the draw key
 CTRL = 0
@@ -43,12 +46,13 @@ class PrrModel:
     """Packet reception ratio as a function of sender-receiver distance."""
 
     curve: str = "shadowed"
-    range_m: float = 170.0  # R: PRR(R) = 0.5 for shadowed and logistic
+    range_m: float = 170.0  # R, the nominal range: PRR(R) = prr_at_range
+    prr_at_range: float = 0.9
     exponent: float = 4.0  # n: path-loss exponent beyond the breakpoint (WINNER+ B1)
     sigma_db: float = 4.0  # log-normal shadowing (TR 36.885: 3 dB LOS, 4 dB NLOS)
     spread_m: float = 20.0  # logistic only
     p_fixed: float = 1.0  # fixed only
-    cutoff_m: float | None = None  # nobody hears or is disturbed beyond; None = 2R
+    cutoff_m: float | None = None  # nobody hears or is disturbed beyond; None: where PRR < 0.001
     _grid: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -56,21 +60,30 @@ class PrrModel:
             raise ValueError(f"unknown PRR curve {self.curve!r}; known: {', '.join(CURVES)}")
         if self.range_m <= 0 or self.sigma_db <= 0 or self.spread_m <= 0 or self.exponent <= 0:
             raise ValueError("range_m, exponent, sigma_db and spread_m must be positive")
-        if not 0.0 <= self.p_fixed <= 1.0:
-            raise ValueError("p_fixed must lie in [0, 1]")
+        if not 0.0 <= self.p_fixed <= 1.0 or not 0.0 < self.prr_at_range < 1.0:
+            raise ValueError("p_fixed must lie in [0, 1] and prr_at_range in (0, 1)")
         object.__setattr__(self, "_grid", self._exact(np.linspace(0.0, self.max_range_m, _GRID_POINTS)))
 
     @property
     def max_range_m(self) -> float:
-        return 2.0 * self.range_m if self.cutoff_m is None else float(self.cutoff_m)
+        if self.cutoff_m is not None:
+            return float(self.cutoff_m)
+        if self.curve == "fixed":
+            return self.range_m
+        if self.curve == "logistic":
+            return self._d50() + self.spread_m * math.log(999.0)
+        return self.range_m * 10.0 ** ((_probit(self.prr_at_range) - _probit(_FLOOR)) * self.sigma_db
+                                       / (10.0 * self.exponent))
+
+    def _d50(self) -> float:
+        return self.range_m + self.spread_m * math.log(self.prr_at_range / (1.0 - self.prr_at_range))
 
     def _exact(self, d: np.ndarray) -> np.ndarray:
         if self.curve == "fixed":
             return np.full(d.shape, self.p_fixed)
         if self.curve == "logistic":
-            return 1.0 / (1.0 + np.exp((d - self.range_m) / self.spread_m))
-        margin_db = 10.0 * self.exponent * np.log10(self.range_m / np.maximum(d, 1.0))
-        z = margin_db / self.sigma_db
+            return 1.0 / (1.0 + np.exp((d - self._d50()) / self.spread_m))
+        z = _probit(self.prr_at_range) + 10.0 * self.exponent * np.log10(self.range_m / np.maximum(d, 1.0)) / self.sigma_db
         return np.array([0.5 * math.erfc(-x / math.sqrt(2.0)) for x in z.ravel()]).reshape(d.shape)  # Phi(z)
 
     def prr(self, distance_m: np.ndarray | float) -> np.ndarray:
@@ -78,6 +91,18 @@ class PrrModel:
         d = np.asarray(distance_m, dtype=np.float64)
         p = np.interp(d, np.linspace(0.0, self.max_range_m, _GRID_POINTS), self._grid)
         return np.where(d <= self.max_range_m, p, 0.0)
+
+
+def _probit(p: float) -> float:
+    """Phi^-1(p) by bisection (no scipy dependency)."""
+    lo, hi = -10.0, 10.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if 0.5 * math.erfc(-mid / math.sqrt(2.0)) < p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def distances(xy: np.ndarray) -> np.ndarray:

@@ -100,6 +100,11 @@ def net_emp_down(run: str, vid: int | str) -> str:
     return f"{_run(run)}/net/emp/down/{_vid(vid)}"
 
 
+def proxy_alive(run: str) -> str:
+    """The channel proxy's liveliness token: present once it is subscribed and serving."""
+    return f"{_run(run)}/alive/proxy"
+
+
 def everything(run: str) -> str:
     """All of a run's keys, for the recorder."""
     return f"{_run(run)}/**"

@@ -1,0 +1,178 @@
+"""The agreement rule against hand-derived cases, and its promise: whatever each vehicle
+heard, the vehicles that transmit laid out the same plan, so nothing collides."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from channel_proxy import loss, medium
+from protocol.messages import ControlMsg, ObjectMap, Pose
+from vehicle_agent.agreement import (AgreementConfig, decide, frames_of, group_of, members, n_groups, plan)
+
+GROUPED = AgreementConfig()
+
+
+def msg(vid: int, tick: int, heard, objects=(), xy=(0.0, 0.0)) -> ControlMsg:
+    """``objects``: (object id, size, {receiver: y}), with v = 0 and r = y."""
+    receivers = sorted({j for _, _, ys in objects for j in ys})
+    n, m = len(objects), len(receivers)
+    rel = np.zeros((n, m), dtype=np.float32)
+    for t, (_, _, ys) in enumerate(objects):
+        for j, y in ys.items():
+            rel[t, receivers.index(j)] = y
+    om = ObjectMap(np.array([o for o, _, _ in objects], dtype=np.int64), np.array([s for _, s, _ in objects], dtype=np.int64),
+                   np.zeros((n, 2), np.float32), np.array(receivers, dtype=np.int64), np.zeros((n, m), np.float32), rel)
+    return ControlMsg(tick, tick * 0.1, vid, Pose(xy[0], xy[1], 0.0), 0.0, np.zeros((2, 3), np.float32), om,
+                      np.array(sorted(heard), dtype=np.int64))
+
+
+# ------------------------------------------------------------------ the steps
+
+
+def test_members_are_those_enough_ballots_list():
+    # votes: 1 by ballots 2 and 3; 2 by ballot 1 (its own listing does not count); 3 by 1 and 2; 9 by 3
+    ballots = {1: [2, 3], 2: [1, 2, 3], 3: [1, 9]}
+    assert members(ballots, 0.5).tolist() == [1, 3]  # need ceil(1.5) = 2 votes
+    assert members(ballots, 0.3).tolist() == [1, 2, 3, 9]  # need 1
+    assert members({1: [], 2: []}, 0.25).tolist() == []  # first interval: nobody was heard yet
+
+
+def test_membership_agrees_under_heavy_loss():
+    # 40 vehicles, 30% independent loss: every vehicle holds different ballots, all agree on M
+    rng = np.random.default_rng(0)
+    vids = np.arange(40)
+    heard_last = {v: [u for u in vids if u != v and rng.random() > 0.3] for v in vids}
+    views = []
+    for v in vids:
+        ballots = {v: heard_last[v]} | {u: heard_last[u] for u in vids if u != v and rng.random() > 0.3}
+        views.append(tuple(members(ballots, 0.25).tolist()))
+    assert set(views) == {tuple(vids.tolist())}
+
+
+def test_group_count_and_frames():
+    assert [n_groups(m, 4, 10) for m in (0, 3, 4, 5, 20, 40, 100)] == [0, 1, 1, 2, 5, 10, 10]
+    assert n_groups(40, None, 10) == 1
+    assert frames_of(1, 3, 10) == (1, 4, 7)
+    assert sorted(f for g in range(3) for f in frames_of(g, 3, 10)) == list(range(10))
+
+
+def test_groups_are_balanced_rotate_and_ignore_input_order():
+    vids = np.arange(100, 140)
+    g = group_of(vids, 7, 10)
+    assert np.bincount(g).tolist() == [4] * 10
+    shuffled = np.random.default_rng(1).permutation(vids)
+    assert dict(zip(shuffled.tolist(), group_of(shuffled, 7, 10).tolist())) == dict(zip(vids.tolist(), g.tolist()))
+    assert not np.array_equal(g, group_of(vids, 8, 10))  # a new grouping every tick
+
+
+# ------------------------------------------------------------------ hand-derived plans
+
+# two vehicles 10 m apart (p = 1): 1 offers object 5 (900 B, worth 1.0 to 2), 2 offers
+# object 6 (900 B, worth 0.5 to 1). Greedy puts both in frame 0; the TDMA layout sends
+# the larger reward first: 1 in [0, 1 ms), 2 in [1, 2 ms).
+A = msg(1, 3, [2], [(5, 900, {2: 1.0})], xy=(0.0, 0.0))
+B = msg(2, 3, [1], [(6, 900, {1: 0.5})], xy=(10.0, 0.0))
+
+
+def test_complete_vehicles_share_one_plan():
+    da, db = decide(1, 3, A, [B], GROUPED), decide(2, 3, B, [A], GROUPED)
+    assert da.members.tolist() == [1, 2] and da.frames == tuple(range(10)) and da.transmits
+    assert [(t.object_id, t.start_s, t.size_bytes, t.frame) for t in plan(da, GROUPED)] == [(5, 0.0, 900, 0)]
+    assert [(t.object_id, round(t.start_s, 9), t.frame) for t in plan(db, GROUPED)] == [(6, 0.001, 0)]
+
+
+def test_the_paper_rule_collides_when_one_vehicle_missed_the_other():
+    heard = AgreementConfig(rule="heard")
+    pa = plan(decide(1, 3, A, [B], heard), heard)
+    pb = plan(decide(2, 3, B, [], heard), heard)  # 2 did not hear 1: it schedules itself first
+    assert pa[0].start_s == 0.0 and pb[0].start_s == 0.0  # both claim [0, 1 ms)
+
+
+def test_a_vehicle_that_missed_a_group_member_stays_silent():
+    # three vehicles, one group; all heard each other last interval; now 2 misses 1's message
+    a = msg(1, 3, [2, 4], [(5, 900, {2: 1.0})], xy=(0.0, 0.0))
+    b = msg(2, 3, [1, 4], [(6, 900, {1: 0.5})], xy=(10.0, 0.0))
+    c = msg(4, 3, [1, 2], [], xy=(20.0, 0.0))
+    db = decide(2, 3, b, [c], GROUPED)
+    assert db.members.tolist() == [1, 2, 4] and db.missing.tolist() == [1] and not db.transmits
+    assert plan(db, GROUPED) == ()
+    assert plan(decide(1, 3, a, [b, c], GROUPED), GROUPED)[0].start_s == 0.0  # 1 heard everyone: sends as planned
+    assert not decide(2, 3, b, [], GROUPED).transmits  # heard nobody: not even a member in its own view
+
+
+def test_a_newcomer_is_not_a_member_and_does_not_transmit():
+    C = msg(3, 3, [1, 2], [(7, 900, {1: 1.0})])
+    d = decide(3, 3, C, [A, B], GROUPED)  # nobody listed 3 last interval
+    assert d.members.tolist() == [1, 2] and not d.is_member and plan(d, GROUPED) == ()
+
+
+def test_missing_a_member_of_another_group_does_not_matter():
+    # 8 vehicles in 2 groups of 4; vehicle v misses exactly one vehicle of the other group
+    vids = list(range(8))
+    msgs = {v: msg(v, 5, [u for u in vids if u != v], [(v * 10, 900, {(v + 1) % 8: 1.0})]) for v in vids}
+    g = dict(zip(vids, group_of(np.array(vids), 5, 2).tolist()))
+    for v in vids:
+        other = next(u for u in vids if g[u] != g[v])
+        d = decide(v, 5, msgs[v], [msgs[u] for u in vids if u not in (v, other)], GROUPED)
+        assert d.transmits and d.frames == frames_of(g[v], 2, 10)
+        assert all(t.frame in d.frames for t in plan(d, GROUPED))
+
+
+def test_heard_order_does_not_change_the_plan():
+    vids = list(range(6))
+    msgs = [msg(v, 2, [u for u in vids if u != v], [(v, 500 + 100 * v, {(v + 1) % 6: 0.5, (v + 2) % 6: 1.0})],
+                xy=(5.0 * v, 0.0)) for v in vids]
+    a = plan(decide(0, 2, msgs[0], msgs[1:], GROUPED), GROUPED)
+    b = plan(decide(0, 2, msgs[0], msgs[:0:-1], GROUPED), GROUPED)
+    assert a == b
+
+
+# ------------------------------------------------------------------ the promise
+
+
+def transmissions_under_loss(n: int, q: float, seed: int, config: AgreementConfig):
+    """Every vehicle's plan when each control message reaches each receiver w.p. 1 - q."""
+    rng = np.random.default_rng(seed)
+    vids = list(range(100, 100 + n))
+    heard_last = {v: [u for u in vids if u != v and rng.random() > q] for v in vids}
+    msgs = {}
+    for v in vids:
+        objs = [(v * 100 + k, int(rng.integers(1000, 5000)), {int(j): float(rng.random())
+                for j in rng.choice([u for u in vids if u != v], 3, replace=False)}) for k in range(4)]
+        msgs[v] = msg(v, 9, heard_last[v], objs, xy=tuple(rng.uniform(-40, 40, 2)))
+    sender, start, size, item = [], [], [], []
+    for c, v in enumerate(vids):
+        heard_now = [msgs[u] for u in vids if u != v and rng.random() > q]
+        for t in plan(decide(v, 9, msgs[v], heard_now, config), config):
+            sender.append(c), start.append(t.start_s), size.append(t.size_bytes), item.append(t.object_id)
+    return np.array(vids), np.array(sender, int), np.array(start), np.array(size, int), np.array(item, int)
+
+
+@pytest.mark.parametrize("q", [0.1, 0.3])
+def test_grouped_plans_never_overlap_whatever_each_vehicle_heard(q):
+    for seed in range(3):
+        vids, sender, start, size, item = transmissions_under_loss(40, q, seed, GROUPED)
+        assert len(sender) > 0
+        ones = np.ones((40, 40))
+        out = medium.play_data(vids, sender, item, start, size, ones, ones.astype(bool), bandwidth_bps=7.2e6,
+                               interval_s=0.1, seed=0, tick=0)
+        assert not out.collided.any() and not out.overflow.any()
+
+
+def test_the_paper_rule_collides_under_the_same_loss():
+    vids, sender, start, size, item = transmissions_under_loss(40, 0.1, 0, AgreementConfig(rule="heard"))
+    ones = np.ones((40, 40))
+    out = medium.play_data(vids, sender, item, start, size, ones, ones.astype(bool), bandwidth_bps=7.2e6,
+                           interval_s=0.1, seed=0, tick=0)
+    assert out.collided.any(axis=1).mean() > 0.2
+
+
+def test_config_checks_and_profile():
+    with pytest.raises(ValueError):
+        AgreementConfig(rule="vote")
+    with pytest.raises(ValueError):
+        AgreementConfig(group_size=0)
+    from channel_proxy.profiles import get_profile
+    cfg = AgreementConfig.from_profile(get_profile("dsrc"))
+    assert cfg.n_frames == 1 and cfg.bandwidth_bps == 6e6 and cfg.prr == loss.PrrModel(range_m=150.0)

@@ -64,7 +64,8 @@ def _to_wire(value: Any) -> Any:
         arr = np.ascontiguousarray(value)
         if arr.dtype.str not in _WIRE_DTYPES:
             raise TypeError(f"dtype {arr.dtype} cannot go on the wire")
-        return [arr.dtype.str, list(arr.shape), memoryview(arr).cast("B")]
+        raw = memoryview(arr).cast("B") if arr.size else b""  # a view with a 0 in its shape cannot be cast
+        return [arr.dtype.str, list(arr.shape), raw]
     if dataclasses.is_dataclass(value):
         return [_to_wire(getattr(value, name)) for name, _ in _hints(type(value))]
     if isinstance(value, (list, tuple)):

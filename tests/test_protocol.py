@@ -34,6 +34,11 @@ def test_round_trip(msg):
             assert a == b
 
 
+def test_empty_arrays_round_trip():
+    msg = Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, np.zeros((0, 3), np.float32))
+    assert decode(encode(msg), Scan).points.shape == (0, 3)
+
+
 def test_scan_points_travel_without_tolist():
     pts = np.random.default_rng(0).random((30000, 3), dtype=np.float32)
     payload = encode(Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, pts))

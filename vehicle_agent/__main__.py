@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import queue
 import signal
@@ -10,11 +11,19 @@ import sys
 import threading
 import time
 
+import numpy as np
+
+from channel_proxy.emp import voronoi_segment
+from channel_proxy.profiles import get_profile
 from protocol import keys
 from protocol.codec import encode
-from protocol.messages import MapMsg, Mission, Outcome, Scan
+from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
 from protocol.session import DropCounter, add_zenoh_args, query_one, session_scope, typed_handler, zenoh_args_from
-from vehicle_agent.agent import LaneFollower
+from vehicle_agent.agent import Agent
+from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.agreement import plan as plan_transmissions
+from vehicle_agent.frames import sensor_to_world
+from vehicle_agent.link import V2VLink
 
 log = logging.getLogger("vehicle_agent")
 
@@ -31,6 +40,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="exit if no scan arrives for this long (the world is gone)")
     ap.add_argument("--scheme", default="autocast", choices=SCHEMES,
                     help="sharing scheme: single (no V2V), agnostic, autocast, autocast-fptas, emp")
+    ap.add_argument("--channel-profile", default="lte-direct",
+                    help="the radio profile the proxy plays (B, T_n, N must agree with it)")
     ap.add_argument("--log-level", default="WARNING")
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -61,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+SCHEDULER_OF = {"agnostic": "agnostic", "autocast": "autocast", "autocast-fptas": "autocast-fptas"}
+
+
 def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     """Fetch the map and mission, then answer every scan with a command until stopped."""
     run, vid = args.run_id, args.vid
@@ -68,12 +82,12 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     scans: queue.Queue[Scan] = queue.Queue()
     deadline = time.monotonic() + args.startup_timeout_s
     try:
-        _ask(session, keys.world_map(run), MapMsg, deadline)
+        mapmsg = _ask(session, keys.world_map(run), MapMsg, deadline)
         mission = _ask(session, keys.mission(run, vid), Mission, deadline)
     except TimeoutError as exc:
         log.error("world never answered: %s", exc)
         return 2
-    agent = LaneFollower(mission)
+    step = Pipeline(session, run, mission, mapmsg, args.scheme, drops, stop, args.channel_profile)
     subs = [
         session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
         session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
@@ -90,15 +104,105 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                     log.warning("no scan for %.0f s; exiting", args.idle_exit_s)
                     break
                 continue
+            while not scans.empty():  # in real-time mode, a late agent skips to the newest scan
+                scan = scans.get_nowait()
             last_scan = time.monotonic()
-            cmd_pub.put(encode(agent.run_step(scan)))
+            try:
+                cmd = step.run(scan)
+            except Exception:  # a bug in one stage must not take the vehicle down: fail safe
+                log.exception("tick %d failed; braking", scan.tick)
+                spec = mission.spec
+                cmd = Command(scan.tick, scan.t_sim_s, vid, -spec.max_brake_mps2, 0.0)
+            cmd_pub.put(encode(cmd))
     finally:
         token.undeclare()
         for sub in subs:
             sub.undeclare()
+        step.close()
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
+    print("agent_timings " + json.dumps(step.timing_summary()), file=sys.stderr, flush=True)
     return 0
+
+
+class Pipeline:
+    """One scheme's per-interval step around the Agent's stages."""
+
+    def __init__(self, session, run: str, mission: Mission, mapmsg: MapMsg, scheme: str, drops: DropCounter,
+                 stop: threading.Event, profile_name: str) -> None:
+        self.session, self.run_id, self.mission, self.scheme = session, run, mission, scheme
+        self.agent = Agent(mission, mapmsg)
+        self.link = None if scheme == "single" else V2VLink(session, run, mission.vid, drops, stop)
+        self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
+                                                      scheduler=SCHEDULER_OF.get(scheme, "autocast"))
+        self.heard: list[int] = []
+        self.emp_sites: dict[int, np.ndarray] = {}
+        self.report_pub = session.declare_publisher(keys.report(run, mission.vid)) if mission.role == "ego" else None
+        self.timings: dict[str, list[float]] = {}
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+        if self.report_pub is not None:
+            self.report_pub.undeclare()
+
+    def run(self, scan: Scan) -> Command:
+        t0 = time.perf_counter()
+        agent = self.agent
+        extra = self._emp(scan) if self.scheme == "emp" else None
+        view = agent.perceive(scan, extra)
+        payloads: list[bytes] = []
+        if self.scheme in SCHEDULER_OF:
+            payloads = self._share(view, scan)
+        fused = agent.fuse(view, payloads)
+        plan = agent.plan(view, fused, scan)
+        cmd = agent.control(plan, scan)
+        if self.report_pub is not None:
+            self._report(view, plan, scan)
+        agent.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+        for k, v in agent.timings_ms.items():
+            self.timings.setdefault(k, []).append(v)
+        return cmd
+
+    def _share(self, view, scan: Scan) -> list[bytes]:
+        """Control message -> what we heard -> the agreed schedule -> our slots -> what we decoded."""
+        agent, link = self.agent, self.link
+        own = agent.control_message(view, scan, self.heard)
+        heard = link.exchange_control(own)
+        self.heard = sorted(m.vid for m in heard)
+        agent.dataplane.neighbors.update(heard)
+        t0 = time.perf_counter()
+        decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
+        slots = plan_transmissions(decision, self.agreement)
+        agent.timings_ms["schedule"] = (time.perf_counter() - t0) * 1e3
+        blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
+        txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]
+        return [r.payload for r in link.exchange_data(scan.tick, scan.t_sim_s, txs)]
+
+    def _emp(self, scan: Scan) -> np.ndarray | None:
+        """Upload our Voronoi segment of the full scan; return the relay's segments' points
+        (world frame), which perception then sees as if our own (EMP merges point clouds)."""
+        world = sensor_to_world(scan.points, scan.pose, self.mission.lidar.mount_height_m)
+        own_xy = np.array([scan.pose.x_m, scan.pose.y_m])
+        others = np.array([xy for v, xy in sorted(self.emp_sites.items()) if v != self.mission.vid]).reshape(-1, 2)
+        segment = world[voronoi_segment(world[:, :2], own_xy, others)]
+        bundle = self.link.exchange_emp(scan.tick, scan.t_sim_s, scan.pose, segment)
+        if bundle is None:
+            return None
+        self.emp_sites = {int(v): xy for v, xy in zip(bundle.site_vids, bundle.site_xy)}
+        segments = [seg.points_world.astype(np.float64) for seg in bundle.segments if seg.sender != self.mission.vid]
+        return np.concatenate(segments) if segments else None
+
+    def _report(self, view, plan, scan: Scan) -> None:
+        own = [t.detection.points_world[:, :2] for t in view.tracks]
+        shared = [o.points_world[:, :2] for o in self.agent.dataplane.shared]
+        xy = np.concatenate(own + shared) if own or shared else np.zeros((0, 2))
+        n_shared = int(sum(len(s) for s in shared))
+        self.report_pub.put(encode(AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32),
+                                               n_shared, plan.braking)))
+
+    def timing_summary(self) -> dict[str, float]:
+        return {k: round(float(np.median(v)), 3) for k, v in sorted(self.timings.items())}
 
 
 if __name__ == "__main__":

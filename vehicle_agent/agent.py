@@ -38,9 +38,9 @@ class Agent:
 
     # ------------------------------------------------------------------ stages
 
-    def perceive(self, scan: Scan) -> View:
+    def perceive(self, scan: Scan, extra_world: np.ndarray | None = None) -> View:
         t0 = time.perf_counter()
-        view = self.dataplane.perceive(scan)
+        view = self.dataplane.perceive(scan, extra_world)
         self.timings_ms = {"perception": (time.perf_counter() - t0) * 1e3}
         return view
 

@@ -8,6 +8,7 @@ over plain arrays, timed into ``timings_ms`` for the perception bench.
 from __future__ import annotations
 
 import time
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -17,7 +18,7 @@ from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.control import progress_along
 from vehicle_agent.frames import sensor_to_world, world_to_sensor
-from vehicle_agent.fusion import FusedGrid, ReceivedStore, SharedObject, fuse, not_me
+from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedObject, fuse, not_contradicted, not_me
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, extract_objects
 from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
@@ -112,6 +113,7 @@ class DataPlane:
         self.relevance_mode = relevance_mode
         self.timings_ms: dict[str, float] = {}
         self.shared: list[SharedObject] = []  # this interval's received objects, placed, ourselves excluded
+        self._recent_poses: deque[Pose] = deque(maxlen=int(round(MAX_AGE_S / mission.decision_interval_s)) + 1)
 
     @contextmanager
     def _timed(self, stage: str):
@@ -121,10 +123,14 @@ class DataPlane:
 
     # ----------------------------------------------------------------- perceive
 
-    def perceive(self, scan: Scan) -> View:
+    def perceive(self, scan: Scan, extra_world: np.ndarray | None = None) -> View:
+        """Perceive this tick's scan; ``extra_world`` are points (world x, y, height) others
+        sent as raw point clouds (the EMP baseline), perceived as if our own."""
         self.timings_ms = {}
         with self._timed("grid"):
             world = sensor_to_world(scan.points, scan.pose, self.mount_m)
+            if extra_world is not None and len(extra_world):
+                world = np.concatenate([world, extra_world[:, :3]])
             grid, cell_idx = build_grid(world, (scan.pose.x_m, scan.pose.y_m), self.spec, self.raster)
         with self._timed("components"):
             detections = extract_objects(world, grid, cell_idx, (scan.pose.x_m, scan.pose.y_m))
@@ -200,7 +206,10 @@ class DataPlane:
                 self.received.add(obj)
                 fresh.add((obj.sender, obj.object_id))
             spec = self.mission.spec
-            self.shared = not_me(self.received.current(view.t_sim_s, fresh), view.pose, spec.length_m, spec.width_m)
+            self._recent_poses.append(view.pose)
+            shared = not_me(self.received.current(view.t_sim_s, fresh), list(self._recent_poses), spec.length_m,
+                            spec.width_m)
+            self.shared = not_contradicted(shared, view.grid)
             fused = fuse(view.grid, self.shared)
         return fused, bad
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.payload import ObjectPayload
-from vehicle_agent.perception import ABOVE, Grid
+from vehicle_agent.perception import ABOVE, GROUND, Grid
 
 MAX_AGE_S = 1.0
 SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
@@ -75,9 +75,37 @@ def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: flo
     return (np.abs(c * dx + s * dy) <= length_m / 2 + margin_m) & (np.abs(-s * dx + c * dy) <= width_m / 2 + margin_m)
 
 
-def not_me(shared: list[SharedObject], pose, length_m: float, width_m: float) -> list[SharedObject]:
-    """Drop the received objects that are this vehicle itself, as another vehicle saw it."""
-    return [o for o in shared if on_body(o.points_world, pose, length_m, width_m).mean() < SELF_SHARE]
+def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: float) -> list[SharedObject]:
+    """Drop what other vehicles saw of this vehicle itself: the objects that are mostly
+    our body, and our body's points from the rest (an object may have merged us with a
+    neighbour). ``poses`` are our current and recent poses: an older reception of us
+    sits where we were a moment ago."""
+    out = []
+    for o in shared:
+        mine = np.zeros(len(o.points_world), dtype=bool)
+        for pose in poses:
+            mine |= on_body(o.points_world, pose, length_m, width_m)
+        if mine.mean() >= SELF_SHARE:
+            continue
+        if mine.any():
+            o = SharedObject(o.key, o.points_world[~mine], o.velocity_xy, o.age_s, o.fresh)
+        out.append(o)
+    return out
+
+
+def not_contradicted(shared: list[SharedObject], grid: Grid, free_share: float = 0.5) -> list[SharedObject]:
+    """Drop carried-forward (not fresh) objects where our own LiDAR now sees bare ground:
+    we can see that they are no longer there."""
+    out = []
+    n = grid.state.shape[0]
+    for o in shared:
+        if not o.fresh:
+            rc = grid.cell_of(o.points_world[:, :2])
+            inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+            if inside.any() and (grid.state[rc[inside, 0], rc[inside, 1]] == GROUND).mean() >= free_share:
+                continue
+        out.append(o)
+    return out
 
 
 def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:

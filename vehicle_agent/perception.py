@@ -125,33 +125,43 @@ def label_components(mask, reach):
     return labels, k
 
 
-class DrivableRaster:
-    """The map's drivable area on the world lattice, rasterized once per agent."""
+class LatticeRaster:
+    """Values on a window of the world lattice, computed once, sliced per tick."""
 
-    def __init__(self, polygons: list[np.ndarray], cell_m: float, margin_m: float = 100.0) -> None:
-        allpts = np.vstack(polygons)
-        lo = np.floor((allpts.min(axis=0) - margin_m) / cell_m).astype(int)
-        hi = np.ceil((allpts.max(axis=0) + margin_m) / cell_m).astype(int)
-        self.i0, self.j0 = int(lo[0]), int(lo[1])
-        nx, ny = hi - lo
-        xs = (np.arange(nx) + self.i0 + 0.5) * cell_m
-        ys = (np.arange(ny) + self.j0 + 0.5) * cell_m
-        px, py = np.meshgrid(xs, ys)
-        mask = np.zeros((ny, nx), dtype=bool)
-        for poly in polygons:
-            mask |= _inside_convex(px, py, np.asarray(poly, dtype=float))
-        self.mask = mask
+    def __init__(self, values: np.ndarray, i0: int, j0: int, fill) -> None:
+        self.values, self.i0, self.j0, self.fill = values, i0, j0, fill
 
     def window(self, i0: int, j0: int, n: int) -> np.ndarray:
-        """The (n, n) drivable mask of the grid whose cell (0, 0) is lattice (i0, j0)."""
-        out = np.zeros((n, n), dtype=bool)
-        ny, nx = self.mask.shape
+        """The (n, n) values of the grid whose cell (0, 0) is lattice (i0, j0)."""
+        out = np.full((n, n), self.fill, dtype=self.values.dtype)
+        ny, nx = self.values.shape
         x0, y0 = i0 - self.i0, j0 - self.j0
         sx0, sy0 = max(x0, 0), max(y0, 0)
         sx1, sy1 = min(x0 + n, nx), min(y0 + n, ny)
         if sx1 > sx0 and sy1 > sy0:
-            out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = self.mask[sy0:sy1, sx0:sx1]
+            out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = self.values[sy0:sy1, sx0:sx1]
         return out
+
+
+def lattice_centers(points: np.ndarray, cell_m: float, margin_m: float) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """The lattice window covering ``points`` plus a margin: (i0, j0, x centres, y centres)."""
+    lo = np.floor((points.min(axis=0) - margin_m) / cell_m).astype(int)
+    hi = np.ceil((points.max(axis=0) + margin_m) / cell_m).astype(int)
+    xs = (np.arange(hi[0] - lo[0]) + lo[0] + 0.5) * cell_m
+    ys = (np.arange(hi[1] - lo[1]) + lo[1] + 0.5) * cell_m
+    return int(lo[0]), int(lo[1]), xs, ys
+
+
+class DrivableRaster(LatticeRaster):
+    """The map's drivable area on the world lattice, rasterized once per agent."""
+
+    def __init__(self, polygons: list[np.ndarray], cell_m: float, margin_m: float = 100.0) -> None:
+        i0, j0, xs, ys = lattice_centers(np.vstack(polygons), cell_m, margin_m)
+        px, py = np.meshgrid(xs, ys)
+        mask = np.zeros(px.shape, dtype=bool)
+        for poly in polygons:
+            mask |= _inside_convex(px, py, np.asarray(poly, dtype=float))
+        super().__init__(mask, i0, j0, False)
 
 
 def _inside_convex(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
-from vehicle_agent.perception import ABOVE, Grid
+from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
 
@@ -181,22 +181,29 @@ def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_co
     return out
 
 
-def _route_distance(grid: Grid, route: np.ndarray) -> np.ndarray:
-    """Distance (m) from every cell centre of the grid to the route polyline."""
-    n = grid.state.shape[0]
-    rows, cols = np.mgrid[0:n, 0:n]
-    p = grid.cell_centers(rows.ravel(), cols.ravel())
-    near = route[np.linalg.norm(route - grid.cell_centers(np.array([n // 2]), np.array([n // 2]))[0], axis=1)
-                 < grid.spec.half_extent_m * 1.5 + 50.0]
-    if len(near) < 2:
-        near = route
-    a, ab = near[:-1], np.diff(near, axis=0)
-    best = np.full(len(p), np.inf)
-    for k in range(len(a)):  # a few dozen segments; each pass is vectorized over the cells
-        len2 = max(float(ab[k] @ ab[k]), 1e-12)
-        t = np.clip(((p - a[k]) @ ab[k]) / len2, 0.0, 1.0)
-        best = np.minimum(best, np.hypot(*(p - a[k] - t[:, None] * ab[k]).T))
-    return best.reshape(n, n)
+@njit(cache=True)
+def _distance_to_polyline(xs, ys, route):
+    """Distance from every lattice centre (ys x xs) to the polyline."""
+    out = np.full((len(ys), len(xs)), np.inf)
+    for k in range(route.shape[0] - 1):
+        ax, ay = route[k, 0], route[k, 1]
+        ex, ey = route[k + 1, 0] - ax, route[k + 1, 1] - ay
+        len2 = max(ex * ex + ey * ey, 1e-12)
+        for r in range(len(ys)):
+            for c in range(len(xs)):
+                t = min(max(((xs[c] - ax) * ex + (ys[r] - ay) * ey) / len2, 0.0), 1.0)
+                d = np.hypot(xs[c] - ax - t * ex, ys[r] - ay - t * ey)
+                if d < out[r, c]:
+                    out[r, c] = d
+    return out
+
+
+class RouteRaster(LatticeRaster):
+    """Distance to the route on the world lattice, computed once per mission."""
+
+    def __init__(self, route: np.ndarray, cell_m: float, margin_m: float) -> None:
+        i0, j0, xs, ys = lattice_centers(route, cell_m, margin_m)
+        super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
 def _along(route: np.ndarray, xy: np.ndarray) -> float:
@@ -221,6 +228,7 @@ class PathPlanner:
     path: np.ndarray | None = None
     replans: int = 0
     blocked: np.ndarray | None = None
+    _route_raster: RouteRaster | None = None
 
     def plan(self, grid: Grid, static_obstacles: np.ndarray, pose: Pose, speed_mps: float) -> np.ndarray:
         """A world-frame path (m, 2) from the vehicle toward the route ahead.
@@ -231,7 +239,9 @@ class PathPlanner:
         radius = int(np.ceil((self.spec.width_m / 2 + cfg.margin_m) / grid.spec.cell_m))
         blocked = _inflate(static_obstacles, radius)
         self.blocked = blocked
-        dist = _route_distance(grid, self.route)
+        if self._route_raster is None:
+            self._route_raster = RouteRaster(self.route, grid.spec.cell_m, cfg.corridor_m + 2.0)
+        dist = self._route_raster.window(grid.i0, grid.j0, grid.state.shape[0])
         passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
         s_now = _along(self.route, np.array([pose.x_m, pose.y_m]))
         route_ahead = _point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0))

@@ -1,0 +1,103 @@
+"""The agent's side of the V2V channel: it talks only to the channel proxy.
+
+Per interval: publish the control message, wait for the ``CtrlBundle`` (what this
+vehicle heard), publish the ``DataTx`` (its scheduled objects, possibly none), wait
+for the ``DataBundle`` (what it decoded). A bundle that does not come within the
+timeout counts as hearing nothing, so a dead proxy degrades sharing, never the run.
+In the EMP scheme the same two-step shape carries the Voronoi-segment upload to the
+edge relay and the relay's forwarded segments.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+import numpy as np
+import zenoh
+
+from protocol import keys
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
+    Transmission
+from protocol.session import DropCounter, big_publisher, typed_handler
+
+log = logging.getLogger(__name__)
+
+
+class _Mailbox:
+    """The latest bundle per tick, with a wait for a given tick."""
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition()
+        self._by_tick: dict[int, object] = {}
+
+    def put(self, tick: int, item: object) -> None:
+        with self._cv:
+            self._by_tick[tick] = item
+            for old in [t for t in self._by_tick if t < tick - 5]:
+                del self._by_tick[old]
+            self._cv.notify_all()
+
+    def take(self, tick: int, timeout_s: float, stop: threading.Event) -> object | None:
+        with self._cv:
+            self._cv.wait_for(lambda: tick in self._by_tick or stop.is_set(), timeout_s)
+            return self._by_tick.pop(tick, None)
+
+
+class V2VLink:
+    def __init__(self, session: zenoh.Session, run: str, vid: int, drops: DropCounter, stop: threading.Event,
+                 timeout_s: float = 10.0) -> None:
+        self.vid, self.stop, self.timeout_s = vid, stop, timeout_s
+        self.drops = drops
+        self._ctrl, self._data, self._emp = _Mailbox(), _Mailbox(), _Mailbox()
+        self.missed_bundles = 0
+        self._subs = [
+            session.declare_subscriber(keys.net_ctrl_rx(run, vid), _into(self._ctrl, CtrlBundle, drops)),
+            session.declare_subscriber(keys.net_data_rx(run, vid), _into(self._data, DataBundle, drops)),
+            session.declare_subscriber(keys.net_emp_down(run, vid), _into(self._emp, EmpBundle, drops)),
+        ]
+        self._ctrl_pub = session.declare_publisher(keys.net_ctrl_tx(run, vid))
+        self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
+        self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))
+
+    def close(self) -> None:
+        for entity in (*self._subs, self._ctrl_pub, self._data_pub, self._emp_pub):
+            entity.undeclare()
+
+    def exchange_control(self, msg: ControlMsg) -> list[ControlMsg]:
+        """Broadcast our control message; return the ones we heard this interval."""
+        self._ctrl_pub.put(encode(msg))
+        bundle = self._ctrl.take(msg.tick, self.timeout_s, self.stop)
+        if bundle is None:
+            self.missed_bundles += 1
+            return []
+        heard = []
+        for raw in bundle.messages:
+            try:
+                heard.append(decode(raw, ControlMsg))
+            except MalformedMessage as err:
+                self.drops.add("ctrl bundle item", err)
+        return heard
+
+    def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
+        """Transmit our scheduled objects; return what we decoded this interval."""
+        self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
+        bundle = self._data.take(tick, self.timeout_s, self.stop)
+        if bundle is None:
+            self.missed_bundles += 1
+            return []
+        return list(bundle.receptions)
+
+    def exchange_emp(self, tick: int, t_sim_s: float, pose: Pose, segment_world: np.ndarray) -> EmpBundle | None:
+        """Upload our Voronoi segment to the edge relay; return what it forwarded to us."""
+        self._emp_pub.put(encode(EmpUpload(tick, t_sim_s, self.vid, pose, segment_world.astype(np.float32))))
+        bundle = self._emp.take(tick, self.timeout_s, self.stop)
+        if bundle is None:
+            self.missed_bundles += 1
+        return bundle
+
+
+def _into(box: _Mailbox, cls: type, drops: DropCounter) -> Callable:
+    return typed_handler(cls, lambda key, msg: box.put(msg.tick, msg), drops)

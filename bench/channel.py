@@ -25,7 +25,6 @@ import socket
 import statistics
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -239,7 +238,7 @@ def proxy_process(run_id: str, ctrl_loss: float, seed: int, hub: str) -> Iterato
     run, so its CPU time is its own work, not the hub's routing); always stopped."""
     proc = subprocess.Popen([sys.executable, "-m", "channel_proxy", "--run-id", run_id, "--connect", hub,
                              "--ctrl-loss", str(ctrl_loss), "--seed", str(seed), "--phase-timeout-s", "20"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         yield proc
     finally:
@@ -290,6 +289,7 @@ def summarize(ivs: list[Interval]) -> dict[str, float]:
     return {
         "tx": _med(i.transmissions for i in ivs),
         "coll": _med(i.collided for i in ivs),
+        "coll_max": max((i.collided for i in ivs), default=0),
         "disagree_pct": _med(100.0 * i.collided / i.transmissions if i.transmissions else 0.0 for i in ivs),
         "abstain_pct": _med(100.0 * i.abstained / i.members if i.members else 0.0 for i in ivs),
         "delivered_pct": _med(100.0 * i.delivered_intended_bytes / i.intended_bytes for i in ivs if i.intended_bytes),
@@ -334,14 +334,14 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     print(f"agreement vs control loss, medians over {intervals} intervals: tx = transmissions, coll = those that "
-          "collided, disagree = their share, abstain = members silent for an incomplete view, delivered = share of "
+          "collided (max: in the worst interval), disagree = their share, abstain = members silent for an incomplete view, delivered = share of "
           "scheduled bytes x wanting receivers that arrived, reward = sum of y delivered, vs oracle = reward / the "
           "oracle's (every vehicle holding every control message)")
-    head = f"{'veh':>4} {'rule':<8}{'loss%':>6}{'tx':>6}{'coll':>6}{'disagree%':>10}{'abstain%':>9}{'delivered%':>11}" \
+    head = f"{'veh':>4} {'rule':<8}{'loss%':>6}{'tx':>6}{'coll':>6}{'max':>5}{'disagree%':>10}{'abstain%':>9}{'delivered%':>11}" \
            f"{'reward':>8}{'vs oracle':>10}{'ctrl ovf':>9}"
     print(head)
     for n, rule, loss_pct, s in rows:
-        print(f"{n:>4} {rule:<8}{loss_pct:>6}{s['tx']:>6.0f}{s['coll']:>6.0f}{s['disagree_pct']:>10.2f}"
+        print(f"{n:>4} {rule:<8}{loss_pct:>6}{s['tx']:>6.0f}{s['coll']:>6.0f}{s['coll_max']:>5}{s['disagree_pct']:>10.2f}"
               f"{s['abstain_pct']:>9.1f}{s['delivered_pct']:>11.1f}{s['reward']:>8.1f}{s['vs_oracle']:>10.2f}"
               f"{s['ctrl_overflow']:>9.0f}")
     print()

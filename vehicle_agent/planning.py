@@ -14,10 +14,12 @@ cruise speed at the comfort rate). Every moving object, own or received, is
 extrapolated at constant velocity; a waypoint conflicts when an object's body comes
 within ``safety_m`` of the ego's around the time the ego is there. Static obstacles
 are the path's business; where no path avoids them, the first blocked cell on the
-path is a conflict too. Bodies: the ego is a
-circle of its half width on each waypoint, each object its oriented box. The vehicle
+path is a conflict too. Bodies: the ego is three
+circles of its half width along the path (rear, middle, front), each object its
+oriented box. The vehicle
 follows the plan until it is within stopping distance of the first conflict, then
-brakes to stop short of it; it resumes when the conflict is gone.
+brakes to stop short of it, and keeps braking while any conflict remains; it resumes
+when the conflict is gone.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from protocol.messages import Mission, Pose, VehicleSpec
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
+MOVER_MIN_DIMS_M = (4.0, 1.8)  # a moving object is at least car-sized: LiDAR sees only part of it
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,7 +45,7 @@ class PlannerConfig:
     turn_weight: float = 0.05  # cost per 45 degrees of heading change, per m/s of speed
     comfort_brake_mps2: float = 4.0
     comfort_accel_mps2: float = 2.0
-    safety_m: float = 1.2  # clearance between bodies (less than a lane's spare width: 3.5 - 1.8)
+    safety_m: float = 2.3  # body clearance to keep from a moving object (a near miss is < 2 m)
     time_window_s: float = 1.5  # +- uncertainty on when an object is where
     horizon_s: float = 8.0
     stop_buffer_m: float = 3.0
@@ -267,7 +270,8 @@ class PathPlanner:
         if len(cells) < 2:
             self.path = route_ahead  # no way through: the speed planner stops short of the block
         else:
-            self.path = _smooth(grid.cell_centers(cells[:, 0], cells[:, 1]))
+            raw = _snap_to_route(grid.cell_centers(cells[:, 0], cells[:, 1]), self.route, grid.spec.cell_m)
+            self.path = _smooth(raw)
             self.path[0] = [pose.x_m, pose.y_m]
         return self.path
 
@@ -281,6 +285,22 @@ class PathPlanner:
         n = grid.state.shape[0]
         inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
         return bool(passable[rc[inside, 0], rc[inside, 1]].all())
+
+
+def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:
+    """Where the grid path runs along the route (within a cell), put it on the route
+    itself: a lane centre need not fall on a cell centre."""
+    a, ab = route[:-1], np.diff(route, axis=0)
+    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    t = np.clip(np.einsum("pij,ij->pi", path[:, None, :] - a[None], ab) / len2, 0.0, 1.0)  # (P, S)
+    foot = a[None] + t[..., None] * ab[None]  # (P, S, 2)
+    dist = np.linalg.norm(foot - path[:, None, :], axis=2)
+    best = np.argmin(dist, axis=1)
+    nearest = foot[np.arange(len(path)), best]
+    close = dist[np.arange(len(path)), best] <= cell_m * 0.75
+    out = path.copy()
+    out[close] = nearest[close]
+    return out
 
 
 def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
@@ -323,10 +343,35 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
     return t
 
 
+def _near(path: np.ndarray, pos: np.ndarray, half: np.ndarray, cos_h: np.ndarray, sin_h: np.ndarray,
+          spec: VehicleSpec, safety_m: float) -> np.ndarray:
+    """(M, ..., O): the ego's body at each path point comes within ``safety_m`` of each
+    obstacle's oriented box placed at ``pos`` (M, ..., O, 2)."""
+    full = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    body_half = max(spec.length_m - spec.width_m, 0.0) / 2
+    body_radius = np.hypot(spec.width_m / 2, spec.width_m / 2)  # three such circles cover the box, corners too
+    out = np.zeros(pos.shape[:-1], dtype=bool)
+    extra = (None,) * (pos.ndim - 2)
+    for shift in (-body_half, 0.0, body_half):  # rear, middle and front circles of the ego
+        point = _point_at(path, full + shift) if shift else path
+        d = point[(slice(None), *extra)] - pos
+        u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]  # along the obstacle
+        v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]  # across it
+        out |= np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0)) < body_radius + safety_m
+    return out
+
+
 def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: list[Obstacle],
                    t_now_s: float, cfg: PlannerConfig) -> float | None:
-    """Distance along the path of the first waypoint some obstacle will occupy when the
-    vehicle gets there (within the time window), or None."""
+    """Where the vehicle must stop for the moving obstacles, or None.
+
+    An obstacle conflicts when it will be near some waypoint around the time the
+    vehicle gets there. The vehicle must then stay out of the obstacle's whole swept
+    zone: the answer is the first waypoint that any conflicting obstacle passes near at
+    any time within the horizon (for a crossing that is the crossing; for an oncoming
+    car in the lane the vehicle would pull into, it is where the vehicle would enter
+    that lane).
+    """
     if not obstacles or len(path) < 2:
         return None
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
@@ -343,15 +388,18 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
     pos = xy[None, None] + vel[None, None] * (when[..., None, None] + dt_obs[None, None, :, None])  # (M, W, O, 2)
-    d = path[:, None, None, :] - pos
-    u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]  # along the obstacle
-    v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]  # across it
-    gap = np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0))  # (M, W, O): point to oriented box
-    hit = (gap < spec.width_m / 2 + cfg.safety_m).any(axis=(1, 2))
-    hit[s < 0.5] = False  # where the vehicle already is
-    if not hit.any():
+    timed = _near(path, pos, half, cos_h, sin_h, spec, cfg.safety_m).any(axis=1)  # (M, O)
+    timed[s < 0.5] = False  # where the vehicle already is
+    conflicting = timed.any(axis=0)  # (O,)
+    if not conflicting.any():
         return None
-    return float(s[np.argmax(hit)])
+    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)
+    swept = xy[None] + vel[None] * (sweep_t[:, None, None] + dt_obs[None, :, None])  # (T, O, 2)
+    zone = _near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h, spec,
+                 cfg.safety_m).any(axis=1)[:, conflicting]  # (M, O')
+    zone[s < 0.5] = False
+    first = zone.any(axis=1) | timed[:, conflicting].any(axis=1)
+    return float(s[np.argmax(first)])
 
 
 def trajectory_of(path: np.ndarray, v0: float, accel: float, v_cruise: float, t_now_s: float,
@@ -386,6 +434,7 @@ class Planner:
     mission: Mission
     config: PlannerConfig = field(default_factory=PlannerConfig)
     path_planner: PathPlanner = field(init=False)
+    last: Plan | None = None
 
     def __post_init__(self) -> None:
         self.path_planner = PathPlanner(np.asarray(self.mission.route, dtype=float), self.mission.spec, self.config)
@@ -401,7 +450,8 @@ class Planner:
         path = self.path_planner.plan(grid, static, pose, speed_mps)
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
-        moving = [o for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]
+        moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),
+                           o.t_sim_s, o.heading_rad) for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]
         conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg),
                                  first_blocked(path, grid, self.path_planner.blocked)) if c is not None]
         conflict = min(conflicts) if conflicts else None
@@ -409,13 +459,16 @@ class Planner:
         if abs(cruise - speed_mps) < 0.2:
             accel = 0.0
         if conflict is not None:
-            stop_at = max(conflict - spec.length_m / 2 - cfg.stop_buffer_m, 0.0)
+            stop_at = max(conflict - cfg.stop_buffer_m, 0.0)
             stopping = speed_mps**2 / (2 * cfg.comfort_brake_mps2)
-            if stop_at <= stopping + speed_mps * 0.1 + 1.0:  # within stopping distance (plus one tick)
+            was_braking = self.last is not None and self.last.braking and self.last.conflict_s_m is not None
+            # within stopping distance (plus one tick); once braking for a conflict, keep at it
+            if was_braking or stop_at <= stopping + speed_mps * 0.1 + 1.0:
                 braking = True
                 accel = -spec.max_brake_mps2 if stop_at < 0.5 else -min(
                     max(speed_mps**2 / (2 * max(stop_at, 0.1)), cfg.comfort_brake_mps2 * 0.5), spec.max_brake_mps2)
                 if speed_mps < 0.3:
                     accel = -spec.max_brake_mps2  # hold
         traj = trajectory_of(path, speed_mps, accel, cruise, t_now_s, stop_at if braking else None)
-        return Plan(path, float(accel), traj, conflict, braking)
+        self.last = Plan(path, float(accel), traj, conflict, braking)
+        return self.last

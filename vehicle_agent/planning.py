@@ -108,8 +108,9 @@ def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_co
     g = np.full(n_states, np.inf)
     parent = np.full(n_states, -1, dtype=np.int64)
     closed = np.zeros(n_states, dtype=np.bool_)
-    heap_f = np.empty(n_states + 1)
-    heap_s = np.empty(n_states + 1, dtype=np.int64)
+    capacity = 4 * n_states  # lazy deletion pushes a state once per improvement (at most its in-degree, 5)
+    heap_f = np.empty(capacity)
+    heap_s = np.empty(capacity, dtype=np.int64)
     size = 0
     s0 = (start_r * nx + start_c) * 8 + start_dir
     g[s0] = 0.0
@@ -155,6 +156,8 @@ def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_co
             ns = (rr * nx + c2) * 8 + nd
             cost = g[s] + step * (1.0 + extra[rr, c2]) + turn_cost * turn
             if cost < g[ns] and not closed[ns]:
+                if size == capacity:  # cannot happen within the in-degree bound; fail rather than overflow
+                    return np.zeros((0, 2), dtype=np.int64)
                 g[ns] = cost
                 parent[ns] = s
                 h = np.hypot(rr - goal_r, c2 - goal_c)
@@ -264,9 +267,14 @@ class PathPlanner:
             return self.path
         passable[start[0], start[1]] = True
         heading = int(np.round(pose.yaw_rad / (np.pi / 4))) % 8
-        extra = (cfg.route_weight * dist).astype(np.float64)
-        cells = _astar(passable, extra, int(start[0]), int(start[1]), heading, int(goal[0]), int(goal[1]),
-                       cfg.turn_weight * max(speed_mps, 1.0))
+        # search only the bounding box of the corridor: a band, not the whole 140 m grid
+        rows, cols = np.nonzero(passable)
+        r0, r1 = max(min(rows.min(), start[0], goal[0]) - 1, 0), min(max(rows.max(), start[0], goal[0]) + 2, n)
+        c0, c1 = max(min(cols.min(), start[1], goal[1]) - 1, 0), min(max(cols.max(), start[1], goal[1]) + 2, n)
+        extra = (cfg.route_weight * dist[r0:r1, c0:c1]).astype(np.float64)
+        cells = _astar(np.ascontiguousarray(passable[r0:r1, c0:c1]), extra, int(start[0] - r0), int(start[1] - c0),
+                       heading, int(goal[0] - r0), int(goal[1] - c0), cfg.turn_weight * max(speed_mps, 1.0))
+        cells = cells + np.array([r0, c0])
         if len(cells) < 2:
             self.path = route_ahead  # no way through: the speed planner stops short of the block
         else:

@@ -46,7 +46,7 @@ def test_membership_agrees_under_heavy_loss():
     views = []
     for v in vids:
         ballots = {v: heard_last[v]} | {u: heard_last[u] for u in vids if u != v and rng.random() > 0.3}
-        views.append(tuple(members(ballots, 0.25).tolist()))
+        views.append(tuple(members(ballots, GROUPED.quorum).tolist()))
     assert set(views) == {tuple(vids.tolist())}
 
 

@@ -25,7 +25,7 @@ def world(procs, hub, *extra):
 
 
 def agent(procs, hub, vid):
-    return procs("vehicle_agent", "--run-id", RUN, "--vid", str(vid), "--connect", hub)
+    return procs("vehicle_agent", "--run-id", RUN, "--vid", str(vid), "--connect", hub, "--scheme", "lane")
 
 
 def outcome_of(proc, timeout=60) -> dict:

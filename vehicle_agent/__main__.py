@@ -19,7 +19,7 @@ from protocol import keys
 from protocol.codec import encode
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
 from protocol.session import DropCounter, add_zenoh_args, query_one, session_scope, typed_handler, zenoh_args_from
-from vehicle_agent.agent import Agent
+from vehicle_agent.agent import Agent, LaneFollower
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import sensor_to_world
@@ -27,7 +27,7 @@ from vehicle_agent.link import V2VLink
 
 log = logging.getLogger("vehicle_agent")
 
-SCHEMES = ("single", "agnostic", "autocast", "autocast-fptas", "emp")
+SCHEMES = ("single", "agnostic", "autocast", "autocast-fptas", "emp", "lane")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -39,7 +39,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--idle-exit-s", type=float, default=60.0,
                     help="exit if no scan arrives for this long (the world is gone)")
     ap.add_argument("--scheme", default="autocast", choices=SCHEMES,
-                    help="sharing scheme: single (no V2V), agnostic, autocast, autocast-fptas, emp")
+                    help="sharing scheme: single (no V2V), agnostic, autocast, autocast-fptas, emp; "
+                         "lane: a blind lane follower (the world server's test agents)")
     ap.add_argument("--channel-profile", default="lte-direct",
                     help="the radio profile the proxy plays (B, T_n, N must agree with it)")
     ap.add_argument("--log-level", default="WARNING")
@@ -104,8 +105,6 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                     log.warning("no scan for %.0f s; exiting", args.idle_exit_s)
                     break
                 continue
-            while not scans.empty():  # in real-time mode, a late agent skips to the newest scan
-                scan = scans.get_nowait()
             last_scan = time.monotonic()
             try:
                 cmd = step.run(scan)
@@ -132,7 +131,8 @@ class Pipeline:
                  stop: threading.Event, profile_name: str) -> None:
         self.session, self.run_id, self.mission, self.scheme = session, run, mission, scheme
         self.agent = Agent(mission, mapmsg)
-        self.link = None if scheme == "single" else V2VLink(session, run, mission.vid, drops, stop)
+        self.lane_follower = LaneFollower(mission)
+        self.link = None if scheme in ("single", "lane") else V2VLink(session, run, mission.vid, drops, stop)
         self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
                                                       scheduler=SCHEDULER_OF.get(scheme, "autocast"))
         self.heard: list[int] = []
@@ -147,6 +147,8 @@ class Pipeline:
             self.report_pub.undeclare()
 
     def run(self, scan: Scan) -> Command:
+        if self.scheme == "lane":
+            return self.lane_follower.run_step(scan)
         t0 = time.perf_counter()
         agent = self.agent
         extra = self._emp(scan) if self.scheme == "emp" else None
@@ -202,6 +204,7 @@ class Pipeline:
                                                n_shared, plan.braking)))
 
     def timing_summary(self) -> dict[str, float]:
+        """The median of every stage's per-tick wall time, ms."""
         return {k: round(float(np.median(v)), 3) for k, v in sorted(self.timings.items())}
 
 

@@ -95,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":
             for vid in sim.connected_vids:
-                flags = ["--run-id", run_id, "--vid", str(vid)] + [f for ep in agent_hub for f in ("--connect", ep)]
+                flags = ["--run-id", run_id, "--vid", str(vid), "--scheme", "lane"] + \
+                    [f for ep in agent_hub for f in ("--connect", ep)]
                 procs.start(ProcSpec(f"agent{vid}", "vehicle_agent", tuple(flags)))
         result = server.serve()
         print(summary(result))

@@ -119,6 +119,18 @@ def test_missing_a_member_of_another_group_does_not_matter():
         assert all(t.frame in d.frames for t in plan(d, GROUPED))
 
 
+def test_round_robin_starts_at_the_member_the_tick_picks():
+    # one group [1, 2], each offering six 8000 B objects: agnostic fills one 9000 B frame
+    # each, ten frames for twelve objects, starting at member group[tick mod 2]: that
+    # member sends all six, the other its first four
+    agn = AgreementConfig(scheduler="agnostic")
+    for tick, first in ((3, 2), (4, 1)):
+        a = msg(1, tick, [2], [(k, 8000, {2: 1.0}) for k in range(6)], xy=(0.0, 0.0))
+        b = msg(2, tick, [1], [(k, 8000, {1: 1.0}) for k in range(6)], xy=(10.0, 0.0))
+        sent = {1: plan(decide(1, tick, a, [b], agn), agn), 2: plan(decide(2, tick, b, [a], agn), agn)}
+        assert len(sent[first]) == 6 and [t.object_id for t in sent[3 - first]] == [0, 1, 2, 3]
+
+
 def test_heard_order_does_not_change_the_plan():
     vids = list(range(6))
     msgs = [msg(v, 2, [u for u in vids if u != v], [(v, 500 + 100 * v, {(v + 1) % 6: 0.5, (v + 2) % 6: 1.0})],

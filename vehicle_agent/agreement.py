@@ -46,9 +46,10 @@ behaviour (schedule over whatever was heard, always transmit), for comparison.
 p_ij in the instance must be agreed too: it is the reception model (``channel_proxy.loss``,
 the proxy's own) at the distance between two group members' reported poses, and the
 model at the domain radius for a receiver outside the group, whose fresh pose not every
-member holds. Scheduler state (starvation counters) is not carried across intervals:
-it would diverge between vehicles that heard different messages; use a fresh
-``SchedulerState()`` every interval.
+member holds. Scheduler state is not carried across intervals: it would diverge between
+vehicles that heard different messages. ``agreed_state`` derives one from the decision
+alone: no starvation counters, and agnostic's round robin starting at a group member
+picked by the tick.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ from vehicle_agent.scheduler import SchedulerState, SenderOffers, get, make_inst
 
 RULES = ("grouped", "heard")
 GROUPING_SALT = 0x61677265  # keys the grouping hash apart from the channel's loss draws
+_BEFORE_ANY_OBJECT = -(1 << 62)  # an object id below every real one
 
 
 @dataclass(frozen=True, slots=True)
@@ -213,6 +215,17 @@ def agreed_p(decision: Decision, config: AgreementConfig) -> Callable[[int, int]
     return p_ij
 
 
+def agreed_state(decision: Decision) -> SchedulerState:
+    """Scheduler state every group member derives alike: no starvation counters, and a
+    round-robin cursor just before the first object of the group member the tick picks
+    (``group[tick mod |group|]``), so agnostic's rotation moves on every interval
+    without a carried cursor, which would diverge between vehicles."""
+    if len(decision.group) == 0:
+        return SchedulerState()
+    first = int(decision.group[decision.tick % len(decision.group)])
+    return SchedulerState(cursor=(first, _BEFORE_ANY_OBJECT))
+
+
 def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
     """The vehicle's own transmissions this interval (empty unless ``decision.transmits``):
     the scheduler run on its group's instance, laid out in its group's frames."""
@@ -224,7 +237,7 @@ def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
         bandwidth_bps=config.bandwidth_bps, frame_duration_s=config.frame_duration_s,
         decision_interval_s=len(decision.frames) * config.frame_duration_s,
     )
-    schedule = get(config.scheduler)(instance, SchedulerState())
+    schedule = get(config.scheduler)(instance, agreed_state(decision))
     layout = tdma_plan(instance, schedule)
     out = []
     for t in layout.sent_by(decision.vid):

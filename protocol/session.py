@@ -130,9 +130,14 @@ def session_scope(z: ZenohArgs, wait_s: float = 60.0) -> Iterator[zenoh.Session]
             log.warning("closing the Zenoh session: %s", exc)
 
 
-def big_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    """A publisher for scans and point clouds: BLOCK, since DROP silently loses them."""
+def reliable_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """A publisher whose messages must arrive (commands, ticks, control messages, scans,
+    point clouds): BLOCK. Zenoh's default, DROP, silently discards a message when the
+    link's queue is congested, even a small command queued behind a large report."""
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+big_publisher = reliable_publisher
 
 
 def put(session: zenoh.Session, key: str, msg: Any) -> None:

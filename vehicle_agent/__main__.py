@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import logging
 import queue
@@ -18,7 +19,8 @@ from channel_proxy.profiles import get_profile
 from protocol import keys
 from protocol.codec import encode
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
-from protocol.session import DropCounter, add_zenoh_args, query_one, session_scope, typed_handler, zenoh_args_from
+from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
+                              zenoh_args_from)
 from vehicle_agent.agent import Agent, LaneFollower
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
@@ -27,6 +29,7 @@ from vehicle_agent.link import V2VLink
 
 log = logging.getLogger("vehicle_agent")
 
+STALL_DUMP_S = 5.0
 SCHEMES = ("single", "agnostic", "autocast", "autocast-fptas", "emp", "lane")
 
 
@@ -93,7 +96,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
         session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
     ]
-    cmd_pub = session.declare_publisher(keys.cmd(run, vid))
+    cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
     token = session.liveliness().declare_token(keys.alive(run, vid))
     last_scan = time.monotonic()
     try:
@@ -106,12 +109,15 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                     break
                 continue
             last_scan = time.monotonic()
+            faulthandler.dump_traceback_later(STALL_DUMP_S)  # a stalled tick leaves its stack in the log
             try:
                 cmd = step.run(scan)
             except Exception:  # a bug in one stage must not take the vehicle down: fail safe
                 log.exception("tick %d failed; braking", scan.tick)
                 spec = mission.spec
                 cmd = Command(scan.tick, scan.t_sim_s, vid, -spec.max_brake_mps2, 0.0)
+            finally:
+                faulthandler.cancel_dump_traceback_later()
             cmd_pub.put(encode(cmd))
     finally:
         token.undeclare()
@@ -137,7 +143,7 @@ class Pipeline:
                                                       scheduler=SCHEDULER_OF.get(scheme, "autocast"))
         self.heard: list[int] = []
         self.emp_sites: dict[int, np.ndarray] = {}
-        self.report_pub = session.declare_publisher(keys.report(run, mission.vid)) if mission.role == "ego" else None
+        self.report_pub = reliable_publisher(session, keys.report(run, mission.vid)) if mission.role == "ego" else None
         self.timings: dict[str, list[float]] = {}
 
     def close(self) -> None:

@@ -21,7 +21,7 @@ from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
     Transmission
-from protocol.session import DropCounter, big_publisher, typed_handler
+from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ class V2VLink:
             session.declare_subscriber(keys.net_data_rx(run, vid), _into(self._data, DataBundle, drops)),
             session.declare_subscriber(keys.net_emp_down(run, vid), _into(self._emp, EmpBundle, drops)),
         ]
-        self._ctrl_pub = session.declare_publisher(keys.net_ctrl_tx(run, vid))
+        self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
         self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
         self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))
 

@@ -24,7 +24,7 @@ import zenoh
 from protocol import keys
 from protocol.codec import encode
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
-from protocol.session import DropCounter, big_publisher, typed_handler
+from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
 from world_server.sim import Simulation
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,7 @@ class WorldServer:
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
         self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
+        self._ego_reports = False  # the ego agent reports its fused view: wait for it in lock-step
         self._expected = set(sim.connected_vids)
         self._live = set(self._expected)
         self._stopping = threading.Event()
@@ -84,7 +85,7 @@ class WorldServer:
                                  typed_handler(AgentReport, self._on_report, self.drops)),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
-        self._tick_pub = s.declare_publisher(keys.world_tick(run))
+        self._tick_pub = reliable_publisher(s, keys.world_tick(run))
         self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
         self._entities += [self._tick_pub, *self._scan_pubs.values()]
 
@@ -115,6 +116,8 @@ class WorldServer:
     def _on_report(self, key: str, report: AgentReport) -> None:
         with self._cv:
             self._reports[report.tick] = report
+            self._ego_reports = True
+            self._cv.notify_all()
 
     def _mark_dead(self, vid: int, why: str) -> None:
         """Caller holds ``_cv``."""
@@ -185,7 +188,9 @@ class WorldServer:
         with self._cv:
             while not self._stopping.is_set():
                 waiting = [v for v in self._live if self._cmds.get(v) is None or self._cmds[v].tick < k]
-                if not waiting:
+                ego = self.sim.scenario.ego.vid
+                report_due = self._ego_reports and ego in self._live and k not in self._reports
+                if not waiting and not report_due:
                     break
                 left = deadline - time.monotonic()
                 if left <= 0:

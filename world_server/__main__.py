@@ -67,8 +67,8 @@ def summary(result: dict) -> str:
     react = result["reaction_time_s"]
     return (f"outcome: {result['outcome']}  closest distance {result['closest_distance_m']:.2f} m  "
             f"reaction time {'n/a' if react is None else f'{react:.2f} s'}  "
-            f"collider in ego's own view {100 * result['collider_visible_share_own']:.0f}% of ticks "
-            f"({result['collider_points_mean_own']:.0f} points mean)  "
+            f"collider in the ego's {'fused' if result['visibility_source'] == 'fused' else 'own'} view "
+            f"{100 * result['collider_visible_share']:.0f}% of ticks ({result['collider_points_mean']:.0f} points mean)  "
             f"[{result['scenario']}, {result['vehicles']} vehicles, seed {result['seed']}, "
             f"{result['ticks']} ticks in {result['wall_s']:.1f} s wall]")
 

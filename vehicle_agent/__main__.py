@@ -156,6 +156,8 @@ class Pipeline:
         if self.scheme == "lane":
             return self.lane_follower.run_step(scan)
         t0 = time.perf_counter()
+        if self.link is not None:
+            self.link.wait_s = 0.0
         agent = self.agent
         extra = self._emp(scan) if self.scheme == "emp" else None
         view = agent.perceive(scan, extra)
@@ -168,6 +170,9 @@ class Pipeline:
         if self.report_pub is not None:
             self._report(view, plan, scan)
         agent.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+        wait_ms = self.link.wait_s * 1e3 if self.link is not None else 0.0
+        agent.timings_ms["channel_wait"] = wait_ms
+        agent.timings_ms["compute"] = agent.timings_ms["total"] - wait_ms
         for k, v in agent.timings_ms.items():
             self.timings.setdefault(k, []).append(v)
         return cmd

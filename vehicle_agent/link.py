@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -41,8 +42,14 @@ class _Mailbox:
             self._cv.notify_all()
 
     def take(self, tick: int, timeout_s: float, stop: threading.Event) -> object | None:
+        """The bundle of ``tick``; None after ``timeout_s`` or once ``stop`` is set."""
+        deadline = time.monotonic() + timeout_s
         with self._cv:
-            self._cv.wait_for(lambda: tick in self._by_tick or stop.is_set(), timeout_s)
+            while tick not in self._by_tick and not stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cv.wait(min(left, 0.1))  # a signal handler cannot notify: poll the stop event
             return self._by_tick.pop(tick, None)
 
 
@@ -53,6 +60,7 @@ class V2VLink:
         self.drops = drops
         self._ctrl, self._data, self._emp = _Mailbox(), _Mailbox(), _Mailbox()
         self.missed_bundles = 0
+        self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
         self._subs = [
             session.declare_subscriber(keys.net_ctrl_rx(run, vid), _into(self._ctrl, CtrlBundle, drops)),
             session.declare_subscriber(keys.net_data_rx(run, vid), _into(self._data, DataBundle, drops)),
@@ -66,10 +74,17 @@ class V2VLink:
         for entity in (*self._subs, self._ctrl_pub, self._data_pub, self._emp_pub):
             entity.undeclare()
 
+    def _take(self, box: _Mailbox, tick: int):
+        t0 = time.perf_counter()
+        try:
+            return box.take(tick, self.timeout_s, self.stop)
+        finally:
+            self.wait_s += time.perf_counter() - t0
+
     def exchange_control(self, msg: ControlMsg) -> list[ControlMsg]:
         """Broadcast our control message; return the ones we heard this interval."""
         self._ctrl_pub.put(encode(msg))
-        bundle = self._ctrl.take(msg.tick, self.timeout_s, self.stop)
+        bundle = self._take(self._ctrl, msg.tick)
         if bundle is None:
             self.missed_bundles += 1
             return []
@@ -84,7 +99,7 @@ class V2VLink:
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
         """Transmit our scheduled objects; return what we decoded this interval."""
         self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
-        bundle = self._data.take(tick, self.timeout_s, self.stop)
+        bundle = self._take(self._data, tick)
         if bundle is None:
             self.missed_bundles += 1
             return []
@@ -93,7 +108,7 @@ class V2VLink:
     def exchange_emp(self, tick: int, t_sim_s: float, pose: Pose, segment_world: np.ndarray) -> EmpBundle | None:
         """Upload our Voronoi segment to the edge relay; return what it forwarded to us."""
         self._emp_pub.put(encode(EmpUpload(tick, t_sim_s, self.vid, pose, segment_world.astype(np.float32))))
-        bundle = self._emp.take(tick, self.timeout_s, self.stop)
+        bundle = self._take(self._emp, tick)
         if bundle is None:
             self.missed_bundles += 1
         return bundle

@@ -58,7 +58,7 @@ class RecorderConfig:
     scans: str = "ego"
     metadata: dict[str, str] = field(default_factory=dict)
     compression: str = "zstd"
-    drain_s: float = 1.0  # keep recording this long after the outcome
+    drain_s: float = 0.5  # keep recording this long after the outcome
     hub_lost_s: float = 3.0  # finalize when no hub was connected for this long
 
 
@@ -294,7 +294,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
                     help=f"an entry of the '{METADATA_NAME}' metadata record (scenario, seed, scheme, ...)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
-    ap.add_argument("--drain-s", type=float, default=1.0, help="keep recording this long after the outcome")
+    ap.add_argument("--drain-s", type=float, default=0.5, help="keep recording this long after the outcome")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
     return ap.parse_args(argv)

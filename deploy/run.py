@@ -48,6 +48,11 @@ RECORDER_READY_TIMEOUT_S = 30.0
 SETTLE_S = 5.0  # after the outcome, processes get this long to exit on their own
 CRITICAL_EXIT_WAIT_S = 2.0  # a critical process may exit just before its outcome reaches us
 GRACE_S = 3.0
+# The hub forwards every message of the run. Zenoh drops a CongestionControl.DROP message
+# whose egress queue (two batches) stays full for 1 ms, e.g. behind a 1.3 MB scan to the
+# recorder: measured, commands went missing from the log and, before the agents sent them
+# with BLOCK, from the world. 200 ms of patience costs nothing when queues are healthy.
+HUB_CONFIG_JSON5 = "{transport: {link: {tx: {queue: {congestion_control: {drop: {wait_before_drop: 200000}}}}}}}\n"
 
 
 class InputError(ValueError):
@@ -178,8 +183,9 @@ def warm_numba_caches(params: ScenarioParams) -> None:
     """Compile (or load) every numba kernel once here, so N processes load them from the cache.
 
     The agent's kernels are reached through ``vehicle_agent.warm_up()`` when the agent
-    provides it, otherwise through one data-plane pass on the scenario's first scans
-    and the scheduler bench's warm-up. A failure only costs the agents compile time.
+    provides it, otherwise through one pass of the agent's stages (perceive, reason,
+    fuse, plan, control) on the scenario's first scans and the scheduler bench's
+    warm-up. A failure only costs the agents compile time.
     """
     from world_server import lidar
     from world_server.sim import Simulation
@@ -202,31 +208,34 @@ def _warm_agent_kernels(sim) -> None:
         hook()
         return
     from bench.scheduler import warm_up as warm_scheduler
-    from vehicle_agent.dataplane import DataPlane, lane_trajectory
+    from vehicle_agent.agent import Agent
 
     mapmsg = sim.scenario.roadmap.to_msg()
     vids = sim.connected_vids[:2]
     views = sim.sense(vids)
-    planes = {vid: DataPlane(sim.mission(vid), mapmsg) for vid in vids}
+    agents = {vid: Agent(sim.mission(vid), mapmsg) for vid in vids}
     heard: list[int] = []
-    for vid in vids:
-        v, actor = views[vid], sim.scenario.actors[vid]
+    for vid, agent in agents.items():  # two vehicles, so each has a neighbour to reason about
+        v = views[vid]
         scan = Scan(0, 0.0, vid, v.pose, v.speed_mps, v.points)
-        view = planes[vid].perceive(scan)
-        traj = lane_trajectory(actor.route, v.pose, actor.speed_mps, 0.0)
-        msg = planes[vid].control_message(view, scan, traj, heard)
-        for other in vids:
-            planes[other].neighbors.update([msg])
+        view = agent.perceive(scan)
+        msg = agent.control_message(view, scan, heard)
+        for other in agents.values():
+            other.dataplane.neighbors.update([msg])
+        agent.drive(view, agent.fuse(view, []), scan)
         heard.append(vid)
     warm_scheduler()
 
 
-def open_hub(stack: ExitStack, tries: int = 5) -> tuple[zenoh.Session, str]:
+def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5) -> tuple[zenoh.Session, str]:
     """The launcher's router session on a free loopback port, closed with ``stack``."""
+    config = run_dir / "zenoh-hub.json5"
+    config.write_text(HUB_CONFIG_JSON5)
     for attempt in range(tries):
         endpoint = free_endpoint()
         try:
-            return stack.enter_context(session_scope(ZenohArgs(listen=(endpoint,)), wait_s=0.0)), endpoint
+            zargs = ZenohArgs(listen=(endpoint,), config_file=str(config))
+            return stack.enter_context(session_scope(zargs, wait_s=0.0)), endpoint
         except ConnectionError:  # somebody took the port in between
             if attempt == tries - 1:
                 raise
@@ -260,6 +269,7 @@ class Launcher:
         self.session = session
         self.stop = stop
         self.outcome: Outcome | None = None
+        self.outcome_after_stop = False  # judged only because Ctrl-C stopped the world
         self._got_outcome = threading.Event()
         self._drops = DropCounter()
         self.procs = ProcessManager(self.cfg.log_dir)
@@ -267,6 +277,7 @@ class Launcher:
     def _on_outcome(self, key: str, msg: Outcome) -> None:
         if self.outcome is None:
             self.outcome = msg
+            self.outcome_after_stop = self.stop.is_set()
             self._got_outcome.set()
 
     def run(self) -> RunResult:
@@ -320,6 +331,7 @@ class Launcher:
     def _shutdown(self, specs: list) -> None:
         """Let everyone finish on its own briefly, then stop: the world, the others, the recorder."""
         names = [s.name for s in specs if s.name in self.procs.procs]
+        t0 = time.monotonic()
         if self._got_outcome.is_set() and not self.stop.is_set():
             self.procs.wait(names, SETTLE_S)
         elif self.procs.running():  # interrupted or failed: the world judges what happened so far
@@ -329,9 +341,10 @@ class Launcher:
         self.procs.stop(others, GRACE_S)
         self.procs.stop([table.WORLD], GRACE_S)
         self.procs.stop([table.RECORDER], GRACE_S + 2.0)  # it finalizes the MCAP
+        log.debug("all processes stopped %.1f s after the watch ended", time.monotonic() - t0)
 
     def _result(self, failure: str | None) -> RunResult:
-        interrupted = self.stop.is_set() and failure is None
+        interrupted = self.outcome_after_stop or (self.outcome is None and self.stop.is_set() and failure is None)
         if self.outcome is None:
             if interrupted:
                 return RunResult(EXIT_INTERRUPTED, None, "interrupted before an outcome")
@@ -351,7 +364,7 @@ def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
     if opts.warm_up:
         warm_numba_caches(opts.run.params)
     with ExitStack() as stack:
-        session, endpoint = open_hub(stack)
+        session, endpoint = open_hub(stack, opts.run.run_dir)
         opts = replace(opts, run=replace(opts.run, hub=endpoint))
         return Launcher(opts, session, stop).run()
 

@@ -1,0 +1,153 @@
+"""The recorder: envelope peeking, the MCAP layout, and the process finalizing its file
+whatever ends the run (the outcome, SIGINT, SIGTERM, the hub going away)."""
+
+from __future__ import annotations
+
+import io
+import signal
+import time
+
+import msgpack
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from deploy.recorder import McapLog, peek_envelope, subscriptions
+from protocol import keys
+from protocol.codec import decode, encode
+from protocol.messages import Command, Outcome, Pose, Scan, Tick
+from protocol.session import ZenohArgs, open_session
+
+RUN = "rec"
+
+
+def scan(tick: int, vid: int = 0, n: int = 1000) -> Scan:
+    return Scan(tick, tick * 0.1, vid, Pose(1.0, 2.0, 0.5), 3.0, np.ones((n, 3), np.float32))
+
+
+def read(data: bytes):
+    reader = make_reader(io.BytesIO(data))
+    summary = reader.get_summary()
+    msgs = [(ch.topic, schema.name if schema else None, m) for schema, ch, m in reader.iter_messages()]
+    meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    return summary, msgs, meta
+
+
+def test_the_envelope_is_read_without_decoding_the_body():
+    env = peek_envelope(encode(scan(7, n=100_000)))  # a 1.2 MB payload
+    assert (env.cls, env.tick, env.t_sim_s) == (Scan, 7, pytest.approx(0.7))
+    assert peek_envelope(encode(Command(3, 0.3, 1, -2.0, 0.1))).cls is Command
+
+
+@pytest.mark.parametrize("payload", [b"\xc1\xc1 not msgpack", b"", msgpack.packb([5, 99, 0, 0.0, 0, 0.0, 0.0]),
+                                     msgpack.packb([77, 1, 0, 0.0]), msgpack.packb([5, 1, 0, 0.0]),
+                                     msgpack.packb({"a": 1}), msgpack.packb([5, 1, "x", 0.0, 0, 0.0, 0.0])])
+def test_a_bad_envelope_is_none(payload):
+    assert peek_envelope(payload) is None
+
+
+def test_subscriptions_keep_only_the_egos_scans_by_default():
+    ego = subscriptions(RUN, "ego")
+    assert keys.scan(RUN, 0) in ego and keys.scan(RUN, "*") not in ego
+    assert {keys.world_tick(RUN), keys.world_outcome(RUN), keys.cmd(RUN, "*"), keys.net_ctrl_tx(RUN, "*"),
+            keys.net_data_rx(RUN, "*"), keys.net_stats(RUN)} <= set(ego)
+    assert not any("scan" in k for k in subscriptions(RUN, "none"))
+    assert subscriptions(RUN, "all") == [keys.everything(RUN)]
+
+
+def test_payloads_are_written_as_they_arrived_with_a_schema_per_type():
+    buf = io.BytesIO()
+    out = McapLog(buf, {"scenario": "left_turn", "seed": "3"})
+    sent = [(keys.world_tick(RUN), encode(Tick(k, k * 0.1, [0, 1], []))) for k in range(3)]
+    sent += [(keys.scan(RUN, 0), encode(scan(k))) for k in range(3)]
+    sent += [(keys.cmd(RUN, 1), encode(Command(k, k * 0.1, 1, 0.5, 0.0))) for k in range(3)]
+    sent += [(keys.cmd(RUN, 1), b"garbage")]
+    for i, (key, payload) in enumerate(sent):
+        out.write(key, payload, log_time_ns=1_000 + i)
+    out.finish()
+
+    summary, msgs, meta = read(buf.getvalue())
+    assert [m.data for _, _, m in msgs] == [p for _, p in sent]  # byte for byte, in order
+    assert {ch.message_encoding for ch in summary.channels.values()} == {"msgpack"}
+    assert {s.name for s in summary.schemas.values()} == {"Tick", "Scan", "Command"}
+    scans = [m for topic, schema, m in msgs if topic == keys.scan(RUN, 0)]
+    assert [m.publish_time for m in scans] == [0, 100_000_000, 200_000_000]  # t_sim_s in ns
+    assert [m.sequence for m in scans] == [0, 1, 2]
+    assert decode(scans[2].data).tick == 2
+    bad = [(schema, m) for topic, schema, m in msgs if m.data == b"garbage"]
+    assert bad == [(None, bad[0][1])] and bad[0][1].publish_time == bad[0][1].log_time
+    assert meta["autocast"] == {"scenario": "left_turn", "seed": "3"}
+    assert meta["autocast.recorder"]["malformed"] == "1" and meta["autocast.recorder"]["messages"] == str(len(sent))
+
+
+class Hub:
+    """The test as the run's hub, publishing what the world would."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.session = open_session(ZenohArgs(listen=(endpoint,)))
+        self.probe = self.session.declare_publisher(keys.world_tick(RUN))
+
+    def wait_subscribed(self, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not self.probe.matching_status.matching:
+            assert time.monotonic() < deadline, "recorder never subscribed"
+            time.sleep(0.02)
+
+    def publish_ticks(self, n: int) -> None:
+        for k in range(n):
+            self.session.put(keys.world_tick(RUN), encode(Tick(k, k * 0.1, [0], [])))
+            self.session.put(keys.scan(RUN, 0), encode(scan(k)))
+            self.session.put(keys.scan(RUN, 1), encode(scan(k, vid=1)))
+            self.session.put(keys.cmd(RUN, 0), encode(Command(k, k * 0.1, 0, 1.0, 0.0)))
+
+    def close(self) -> None:
+        if not self.session.is_closed():
+            self.probe.undeclare()
+            self.session.close()
+
+
+@pytest.fixture
+def recorder(procs, hub, tmp_path):
+    """A recorder process on the test's hub; yields (process, hub, path)."""
+    path = tmp_path / "run.mcap"
+    h = Hub(hub)
+    p = procs("deploy.recorder", "--run-id", RUN, "--connect", hub, "--out", str(path), "--drain-s", "0.3",
+              "--meta", "scheme=single")
+    h.wait_subscribed()
+    yield p, h, path
+    h.close()
+
+
+def topics_in(path) -> dict[str, int]:
+    summary, _, meta = read(path.read_bytes())
+    assert meta["autocast"]["scheme"] == "single" and meta["autocast"]["run_id"] == RUN
+    assert meta["autocast"]["git_revision"]
+    return {ch.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, ch in summary.channels.items()}
+
+
+def test_the_outcome_ends_the_recording(recorder):
+    p, h, path = recorder
+    h.publish_ticks(5)
+    h.session.put(keys.world_outcome(RUN), encode(Outcome(5, 0.5, {"outcome": "safe"})))
+    assert p.wait(timeout=15) == 0
+    assert topics_in(path) == {keys.world_tick(RUN): 5, keys.scan(RUN, 0): 5, keys.cmd(RUN, 0): 5,
+                               keys.world_outcome(RUN): 1}  # vehicle 1's scan is not kept
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_finalizes_the_file(recorder, sig):
+    p, h, path = recorder
+    h.publish_ticks(3)
+    time.sleep(0.5)
+    p.send_signal(sig)
+    assert p.wait(timeout=15) == 0
+    assert topics_in(path)[keys.world_tick(RUN)] == 3
+
+
+def test_losing_the_hub_finalizes_the_file(recorder):
+    p, h, path = recorder
+    h.publish_ticks(2)
+    time.sleep(0.5)
+    h.close()
+    assert p.wait(timeout=20) == 0
+    assert topics_in(path)[keys.world_tick(RUN)] == 2

@@ -1,0 +1,216 @@
+"""``autocast run`` end to end: the launcher, the world, the agents and the recorder as
+real processes on loopback, driven through the CLI as a user would."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from deploy.run import main as run_main
+from protocol import keys
+from protocol.codec import decode
+from protocol.messages import Outcome, Scan, Tick
+
+OUTCOMES = ("safe", "near_miss", "crash", "deadlock")
+UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap")  # differ between identical runs
+
+
+class Launch:
+    """One ``python -m deploy.cli run`` process; reads its outputs once it has exited."""
+
+    def __init__(self, out: Path, run_id: str, *flags: str) -> None:
+        self.run_id, self.run_dir = run_id, out / run_id
+        self.proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "--out", str(out), "--run-id", run_id,
+                                      "--json", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     start_new_session=True)
+        self.stdout = self.stderr = ""
+
+    def finish(self, timeout: float = 90) -> int:
+        self.stdout, self.stderr = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode
+
+    @property
+    def result(self) -> dict:
+        return json.loads(self.stdout.strip().splitlines()[-1])
+
+    def pids(self, timeout: float = 30) -> dict[str, int]:
+        path = self.run_dir / "pids.json"
+        deadline = time.monotonic() + timeout
+        while not path.exists():
+            assert time.monotonic() < deadline and self.proc.poll() is None, self.stderr
+            time.sleep(0.05)
+        return json.loads(path.read_text())
+
+    def wait_ticking(self, timeout: float = 60) -> None:
+        """Until the world has started ticking (all agents up)."""
+        log = self.run_dir / "logs" / "world.log"
+        deadline = time.monotonic() + timeout
+        while not (log.exists() and "agents up" in log.read_text()):
+            assert time.monotonic() < deadline and self.proc.poll() is None, "the world never started ticking"
+            time.sleep(0.05)
+
+    def leftovers(self) -> list[int]:
+        """Processes of this run still alive (there must be none once the launcher exited)."""
+        out = subprocess.run(["pgrep", "-f", f"--run-id {self.run_id}( |$)"], capture_output=True, text=True)
+        return [int(p) for p in out.stdout.split()]
+
+    def kill_all(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate()
+        for pid in self.leftovers():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.fixture(scope="module")
+def launches(tmp_path_factory):
+    """Start launches; whatever is left of them is killed at the end of the module."""
+    out = tmp_path_factory.mktemp("runs")
+    started: list[Launch] = []
+
+    def start(name: str, *flags: str) -> Launch:
+        started.append(Launch(out, f"t{os.getpid()}-{name}", *flags))
+        return started[-1]
+
+    yield start
+    for launch in started:
+        launch.kill_all()
+
+
+@pytest.fixture(scope="module")
+def scenario_runs(launches):
+    """Each scenario with 5 vehicles and scheme single, run once for the module."""
+    done: dict[str, Launch] = {}
+
+    def get(scenario: str) -> Launch:
+        if scenario not in done:
+            launch = launches(scenario, "--scenario", scenario, "--vehicles", "5", "--scheme", "single")
+            launch.finish()
+            done[scenario] = launch
+        return done[scenario]
+
+    return get
+
+
+def stable(result: dict) -> dict:
+    return {k: v for k, v in result.items() if k not in UNSTABLE}
+
+
+@pytest.mark.parametrize("scenario", ["overtaking", "left_turn", "red_light"])
+def test_each_scenario_runs_to_a_judged_outcome(scenario_runs, scenario):
+    launch = scenario_runs(scenario)
+    r = launch.result
+    assert launch.proc.returncode == (0 if r["outcome"] == "safe" else 1), launch.stderr
+    assert r["outcome"] in OUTCOMES and r["scenario"] == scenario and r["scheme"] == "single"
+    assert r["dead_agents"] == {} and r["ticks"] > 0
+    for key in ("closest_distance_m", "reaction_time_s", "collider_visible_share_own", "seed", "run_dir", "mcap"):
+        assert key in r
+    assert json.loads((launch.run_dir / "outcome.json").read_text()) == r
+    assert r["mcap"] == str(launch.run_dir / "run.mcap")
+    assert r["outcome"] in launch.stdout.splitlines()[-2]  # the summary line before the JSON
+    logs = {p.name for p in (launch.run_dir / "logs").iterdir()}
+    assert logs == {"recorder.log", "world.log"} | {f"agent{v}.log" for v in range(5)}
+    assert launch.leftovers() == []
+
+
+def test_the_same_seed_gives_the_same_outcome(scenario_runs, launches):
+    first = scenario_runs("left_turn")
+    again = launches("again", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single")
+    again.finish()
+    assert stable(again.result) == stable(first.result)
+
+
+def test_the_mcap_holds_every_topic(scenario_runs):
+    launch = scenario_runs("left_turn")
+    run, r = launch.run_id, launch.result
+    with open(launch.run_dir / "run.mcap", "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        ticks = [decode(m.data, Tick).tick for _, _, m in reader.iter_messages(topics=[keys.world_tick(run)])]
+        f.seek(0)
+        scans = [decode(m.data, Scan) for _, _, m in make_reader(f).iter_messages(topics=[keys.scan(run, 0)])]
+        f.seek(0)
+        (outcome,) = [decode(m.data, Outcome) for _, _, m in
+                      make_reader(f).iter_messages(topics=[keys.world_outcome(run)])]
+    counts = {ch.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, ch in summary.channels.items()}
+    expected = {keys.world_tick(run), keys.world_map(run), keys.world_outcome(run), keys.scan(run, 0)}
+    expected |= {keys.cmd(run, v) for v in range(5)} | {keys.mission(run, v) for v in range(5)}
+    assert expected <= set(counts)
+    assert keys.scan(run, 1) not in counts  # only the ego's scans by default
+    assert ticks == list(range(r["ticks"]))
+    assert [s.tick for s in scans] == ticks and scans[0].points.shape[1] == 3
+    assert all(counts[keys.cmd(run, v)] > 0 for v in range(5))
+    assert outcome.result["outcome"] == r["outcome"]
+    assert {ch.message_encoding for ch in summary.channels.values()} == {"msgpack"}
+    assert {"Tick", "Scan", "Command", "Outcome", "MapMsg", "Mission"} <= {s.name for s in summary.schemas.values()}
+    assert {k: meta["autocast"][k] for k in ("scenario", "seed", "scheme", "vehicles", "run_id")} == {
+        "scenario": "left_turn", "seed": "0", "scheme": "single", "vehicles": "5", "run_id": run}
+    assert meta["autocast"]["git_revision"]
+
+
+def test_a_killed_agent_still_ends_in_a_judged_outcome(launches):
+    launch = launches("kill", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single", "--realtime",
+                      "--duration", "8")
+    pid = launch.pids()["agent2"]
+    launch.wait_ticking()
+    time.sleep(1.0)
+    os.kill(pid, signal.SIGKILL)
+    assert launch.finish() in (0, 1), launch.stderr
+    r = launch.result
+    assert r["outcome"] in OUTCOMES and r["mode"] == "realtime"
+    assert list(r["dead_agents"]) == ["2"]
+    assert launch.leftovers() == []
+
+
+def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
+    launch = launches("sigint", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single", "--realtime",
+                      "--duration", "8")
+    pids = launch.pids()
+    launch.wait_ticking()
+    time.sleep(1.0)
+    launch.proc.send_signal(signal.SIGINT)
+    assert launch.finish(timeout=30) == 130, launch.stderr
+    assert launch.result.get("interrupted") is True
+    with open(launch.run_dir / "run.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count > 0
+    assert launch.leftovers() == []
+    assert not [pid for pid in pids.values() if runs_for(pid, launch.run_id)]
+
+
+def runs_for(pid: int, run_id: str) -> bool:
+    """Whether ``pid`` is alive and still one of this run's processes (not a reused pid)."""
+    try:
+        return run_id in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+@pytest.mark.parametrize("flags, field", [(["--vehicles", "500"], "vehicles"), (["--vehicles", "ten"], "vehicles"),
+                                          (["--scenario", "roundabout"], "scenario"),
+                                          (["--collider-speed", "-1"], "collider_speed_kmh"),
+                                          (["--delta", "nan"], "delta_s"), (["--scheme", "telepathy"], "scheme"),
+                                          (["--scans", "some"], "scans"), (["--run-id", "a/b"], "run_id")])
+def test_a_bad_flag_is_refused_naming_the_field(tmp_path, capsys, flags, field):
+    assert run_main(["--out", str(tmp_path), *flags]) == 2
+    assert f"error: {field}: " in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []  # nothing was started, nothing written
+
+
+def test_the_cli_refuses_a_bad_flag_before_starting_anything(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--out", str(tmp_path), "--vehicles", "500"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "error: vehicles: 500 is not in [2, 64]" in p.stderr
+    assert p.stdout == "" and list(tmp_path.iterdir()) == []

@@ -306,7 +306,7 @@ class Launcher:
                 return None
             self.procs.start(spec)
         self._write_pids()
-        log.info("%d processes up in %.1f s: %s", len(specs), time.monotonic() - t0, " ".join(s.name for s in specs))
+        log.info("%d processes started in %.1f s: %s", len(specs), time.monotonic() - t0, " ".join(s.name for s in specs))
         return None
 
     def _write_pids(self) -> None:

@@ -18,7 +18,7 @@ from world_server.scenarios import ScenarioParams, build
 RECORDER = "recorder"
 WORLD = "world"
 PROXY = "proxy"
-NO_PROXY_SCHEMES = ("single",)  # no V2V: nothing for a channel to carry
+NO_PROXY_SCHEMES = ("single", "lane")  # no V2V: nothing for a channel to carry
 EMP_SCHEME = "emp"  # the paper's EMP baseline: the proxy plays the edge relay
 
 

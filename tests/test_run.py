@@ -198,6 +198,20 @@ def runs_for(pid: int, run_id: str) -> bool:
         return False
 
 
+def test_the_world_dying_without_an_outcome_fails_the_run(launches):
+    launch = launches("noworld", "--scenario", "left_turn", "--vehicles", "3", "--scheme", "single", "--realtime",
+                      "--duration", "8")
+    world = launch.pids()["world"]
+    launch.wait_ticking()
+    os.kill(world, signal.SIGKILL)
+    assert launch.finish(timeout=30) == 3
+    assert launch.result["outcome"] is None and "world exited" in launch.result["failure"]
+    assert "run failed: world exited (code -9)" in launch.stderr
+    with open(launch.run_dir / "run.mcap", "rb") as f:
+        assert make_reader(f).get_summary() is not None
+    assert launch.leftovers() == []
+
+
 @pytest.mark.parametrize("flags, field", [(["--vehicles", "500"], "vehicles"), (["--vehicles", "ten"], "vehicles"),
                                           (["--scenario", "roundabout"], "scenario"),
                                           (["--collider-speed", "-1"], "collider_speed_kmh"),

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("lidar", "perception", "scheduler")
+BENCHES = ("lidar", "perception", "scheduler", "channel", "pipeline")
 
 USAGE = """usage: autocast <command> [args]
 

@@ -26,6 +26,7 @@ from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.link import V2VLink
+from vehicle_agent.warmup import warm_up
 
 log = logging.getLogger("vehicle_agent")
 
@@ -92,6 +93,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         log.error("world never answered: %s", exc)
         return 2
     step = Pipeline(session, run, mission, mapmsg, args.scheme, drops, stop, args.channel_profile)
+    if args.scheme != "lane":
+        warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
         session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
         session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
@@ -155,7 +158,7 @@ class Pipeline:
     def run(self, scan: Scan) -> Command:
         if self.scheme == "lane":
             return self.lane_follower.run_step(scan)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         if self.link is not None:
             self.link.wait_s = 0.0
         agent = self.agent
@@ -173,6 +176,7 @@ class Pipeline:
         wait_ms = self.link.wait_s * 1e3 if self.link is not None else 0.0
         agent.timings_ms["channel_wait"] = wait_ms
         agent.timings_ms["compute"] = agent.timings_ms["total"] - wait_ms
+        agent.timings_ms["cpu"] = (time.thread_time() - cpu0) * 1e3  # this agent's own cost, free of contention
         for k, v in agent.timings_ms.items():
             self.timings.setdefault(k, []).append(v)
         return cmd

@@ -37,7 +37,7 @@ import zenoh
 from mcap.writer import CompressionType, Writer
 
 from protocol import keys
-from protocol.codec import _REGISTRY, MalformedMessage, decode
+from protocol.codec import MalformedMessage, decode, message_class
 from protocol.messages import Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 
@@ -82,7 +82,7 @@ def peek_envelope(payload: bytes) -> Envelope | None:
         type_id, version, tick, t_sim_s = (unpacker.unpack() for _ in range(4))
     except Exception:  # msgpack raises several unrelated exception types
         return None
-    cls = _REGISTRY.get(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
+    cls = message_class(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
     if cls is None or version != cls.VERSION or n != 2 + len(dataclasses.fields(cls)):
         return None
     if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):

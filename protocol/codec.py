@@ -50,6 +50,11 @@ def record(cls):
     return dataclasses.dataclass(frozen=True, slots=True)(cls)
 
 
+def message_class(type_id: int) -> type | None:
+    """The registered message dataclass of a wire type id (None if unknown)."""
+    return _REGISTRY.get(type_id)
+
+
 def _hints(cls) -> list[tuple[str, Any]]:
     got = _HINTS.get(cls)
     if got is None:

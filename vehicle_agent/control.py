@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.messages import Pose, VehicleSpec
+from vehicle_agent.paths import point_at, progress_along
 
 
 @dataclass
@@ -43,7 +44,7 @@ class PurePursuit:
 
     def run_step(self, pose: Pose, speed_mps: float, path: np.ndarray, s_along_m: float) -> float:
         lookahead = max(self.lookahead_min_m, self.lookahead_gain_s * speed_mps)
-        target = _point_along(path, s_along_m + lookahead)
+        target = point_at(path, s_along_m + lookahead)
         alpha = np.arctan2(target[1] - pose.y_m, target[0] - pose.x_m) - pose.yaw_rad
         alpha = (alpha + np.pi) % (2 * np.pi) - np.pi
         return float(np.arctan2(2.0 * self.wheelbase_m * np.sin(alpha), lookahead))
@@ -72,22 +73,3 @@ class VehicleController:
         accel = float(np.clip(accel, -self.spec.max_brake_mps2, self.spec.max_accel_mps2))
         steer = float(np.clip(steer, -self.spec.max_steer_rad, self.spec.max_steer_rad))
         return accel, steer
-
-
-def progress_along(path: np.ndarray, xy: np.ndarray) -> float:
-    """Arc length of the path point closest to ``xy``."""
-    a, ab = path[:-1], np.diff(path, axis=0)
-    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
-    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / len2, 0.0, 1.0)
-    i = int(np.argmin(np.linalg.norm(a + t[:, None] * ab - xy, axis=1)))
-    cum = np.concatenate([[0.0], np.cumsum(np.sqrt(len2))])
-    return float(cum[i] + t[i] * np.sqrt(len2[i]))
-
-
-def _point_along(path: np.ndarray, s: float) -> np.ndarray:
-    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    s = float(np.clip(s, 0.0, cum[-1]))
-    i = min(int(np.searchsorted(cum, s, side="right")) - 1, len(path) - 2)
-    frac = (s - cum[i]) / max(seg[i], 1e-12)
-    return path[i] + frac * (path[i + 1] - path[i])

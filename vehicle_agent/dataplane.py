@@ -16,7 +16,7 @@ import numpy as np
 
 from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
-from vehicle_agent.control import progress_along
+from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import sensor_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedObject, fuse, not_contradicted, not_me
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object, payload_size
@@ -91,7 +91,7 @@ def lane_trajectory(route: np.ndarray, pose: Pose, speed_mps: float, t_now_s: fl
     """Waypoints [x, y, t] every TRAJECTORY_STEP_S along the route at ``speed_mps``."""
     s0 = progress_along(route, np.array([pose.x_m, pose.y_m]))
     times = np.arange(0.0, TRAJECTORY_HORIZON_S + 1e-9, TRAJECTORY_STEP_S)
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
+    cum = arc_lengths(route)
     s = np.clip(s0 + speed_mps * times, 0.0, cum[-1])
     xs = np.interp(s, cum, route[:, 0])
     ys = np.interp(s, cum, route[:, 1])

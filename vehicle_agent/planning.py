@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
+from vehicle_agent.paths import arc_lengths, point_at, progress_along
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
@@ -212,20 +213,6 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
-def _along(route: np.ndarray, xy: np.ndarray) -> float:
-    a, ab = route[:-1], np.diff(route, axis=0)
-    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
-    t = np.clip(np.einsum("ij,ij->i", xy - a, ab) / len2, 0.0, 1.0)
-    i = int(np.argmin(np.linalg.norm(a + t[:, None] * ab - xy, axis=1)))
-    return float(np.concatenate([[0.0], np.cumsum(np.sqrt(len2))])[i] + t[i] * np.sqrt(len2[i]))
-
-
-def _point_at(route: np.ndarray, s: np.ndarray) -> np.ndarray:
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route, axis=0), axis=1))])
-    s = np.clip(s, 0.0, cum[-1])
-    return np.stack([np.interp(s, cum, route[:, 0]), np.interp(s, cum, route[:, 1])], axis=-1)
-
-
 @dataclass
 class PathPlanner:
     route: np.ndarray
@@ -249,8 +236,8 @@ class PathPlanner:
             self._route_raster = RouteRaster(self.route, grid.spec.cell_m, cfg.corridor_m + 2.0)
         dist = self._route_raster.window(grid.i0, grid.j0, grid.state.shape[0])
         passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
-        s_now = _along(self.route, np.array([pose.x_m, pose.y_m]))
-        route_ahead = _point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0))
+        s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]))
+        route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0))
         if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
             return self.path
         start = grid.cell_of(np.array([pose.x_m, pose.y_m]))
@@ -286,10 +273,10 @@ class PathPlanner:
     def _still_good(self, grid: Grid, passable: np.ndarray, pose: Pose, route_ahead: np.ndarray) -> bool:
         """The fast check: the old path's remaining cells are passable and it still leads ahead."""
         path = self.path
-        s = _along(path, np.array([pose.x_m, pose.y_m]))
-        if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or _along(path, path[-1]) - s < 15.0:
+        s = progress_along(path, np.array([pose.x_m, pose.y_m]))
+        if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or progress_along(path, path[-1]) - s < 15.0:
             return False
-        rc = grid.cell_of(_point_at(path, s + np.arange(0.0, _along(path, path[-1]) - s, 0.5)))
+        rc = grid.cell_of(point_at(path, s + np.arange(0.0, progress_along(path, path[-1]) - s, 0.5)))
         n = grid.state.shape[0]
         inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
         return bool(passable[rc[inside, 0], rc[inside, 1]].all())
@@ -330,9 +317,9 @@ def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: flo
     """Distance along the path of its first cell inside an (inflated) static obstacle."""
     if len(path) < 2:
         return None
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    cum = arc_lengths(path)
     s = np.arange(0.5, cum[-1], step_m)
-    rc = grid.cell_of(_point_at(path, s))
+    rc = grid.cell_of(point_at(path, s))
     n = blocked.shape[0]
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
     hit = np.zeros(len(s), dtype=bool)
@@ -355,13 +342,13 @@ def _near(path: np.ndarray, pos: np.ndarray, half: np.ndarray, cos_h: np.ndarray
           spec: VehicleSpec, safety_m: float) -> np.ndarray:
     """(M, ..., O): the ego's body at each path point comes within ``safety_m`` of each
     obstacle's oriented box placed at ``pos`` (M, ..., O, 2)."""
-    full = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    full = arc_lengths(path)
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
     body_radius = np.hypot(spec.width_m / 2, spec.width_m / 2)  # three such circles cover the box, corners too
     out = np.zeros(pos.shape[:-1], dtype=bool)
     extra = (None,) * (pos.ndim - 2)
     for shift in (-body_half, 0.0, body_half):  # rear, middle and front circles of the ego
-        point = _point_at(path, full + shift) if shift else path
+        point = point_at(path, full + shift) if shift else path
         d = point[(slice(None), *extra)] - pos
         u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]  # along the obstacle
         v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]  # across it
@@ -382,7 +369,7 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     """
     if not obstacles or len(path) < 2:
         return None
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    s = arc_lengths(path)
     within = t_path <= cfg.horizon_s
     if not within.any():
         return None
@@ -420,9 +407,9 @@ def trajectory_of(path: np.ndarray, v0: float, accel: float, v_cruise: float, t_
         s = v0 * tt + 0.5 * accel * tt * tt
     else:
         s = np.array([_distance_with(v0, v_cruise, abs(accel) if accel > 0 else 2.0, x) for x in t])
-    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]) if len(path) > 1 else [0.0]
+    cum = arc_lengths(path) if len(path) > 1 else [0.0]
     s = np.minimum(s, cum[-1])
-    xy = _point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
+    xy = point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
     return np.column_stack([xy, t_now_s + t]).astype(np.float32)
 
 
@@ -456,7 +443,7 @@ class Planner:
             return Plan(here, -spec.max_brake_mps2, trajectory_of(here, 0.0, 0.0, 0.0, t_now_s, None), None, True)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         path = self.path_planner.plan(grid, static, pose, speed_mps)
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+        s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
         moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),
                            o.t_sim_s, o.heading_rad) for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]

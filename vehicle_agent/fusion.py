@@ -75,20 +75,33 @@ def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: flo
     return (np.abs(c * dx + s * dy) <= length_m / 2 + margin_m) & (np.abs(-s * dx + c * dy) <= width_m / 2 + margin_m)
 
 
+def _concat(shared: list[SharedObject]) -> tuple[np.ndarray, np.ndarray]:
+    """All objects' points stacked, and each object's start row (for reduceat)."""
+    counts = np.array([len(o.points_world) for o in shared])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return np.concatenate([o.points_world for o in shared]), starts
+
+
 def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: float) -> list[SharedObject]:
     """Drop what other vehicles saw of this vehicle itself: the objects that are mostly
     our body, and our body's points from the rest (an object may have merged us with a
     neighbour). ``poses`` are our current and recent poses: an older reception of us
     sits where we were a moment ago."""
+    shared = [o for o in shared if len(o.points_world)]
+    if not shared:
+        return []
+    pts, starts = _concat(shared)
+    mine = np.zeros(len(pts), dtype=bool)
+    for pose in poses:  # a handful of poses, each test vectorized over every point
+        mine |= on_body(pts, pose, length_m, width_m)
+    share = np.add.reduceat(mine.astype(np.float64), starts) / np.diff(np.append(starts, len(pts)))
     out = []
-    for o in shared:
-        mine = np.zeros(len(o.points_world), dtype=bool)
-        for pose in poses:
-            mine |= on_body(o.points_world, pose, length_m, width_m)
-        if mine.mean() >= SELF_SHARE:
+    for o, start, frac in zip(shared, starts, share):
+        if frac >= SELF_SHARE:
             continue
-        if mine.any():
-            o = SharedObject(o.key, o.points_world[~mine], o.velocity_xy, o.age_s, o.fresh)
+        if frac > 0:
+            keep = ~mine[start:start + len(o.points_world)]
+            o = SharedObject(o.key, o.points_world[keep], o.velocity_xy, o.age_s, o.fresh)
         out.append(o)
     return out
 
@@ -96,16 +109,19 @@ def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: fl
 def not_contradicted(shared: list[SharedObject], grid: Grid, free_share: float = 0.5) -> list[SharedObject]:
     """Drop carried-forward (not fresh) objects where our own LiDAR now sees bare ground:
     we can see that they are no longer there."""
-    out = []
+    stale = [o for o in shared if not o.fresh and len(o.points_world)]
+    if not stale:
+        return shared
+    pts, starts = _concat(stale)
     n = grid.state.shape[0]
-    for o in shared:
-        if not o.fresh:
-            rc = grid.cell_of(o.points_world[:, :2])
-            inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-            if inside.any() and (grid.state[rc[inside, 0], rc[inside, 1]] == GROUND).mean() >= free_share:
-                continue
-        out.append(o)
-    return out
+    rc = grid.cell_of(pts[:, :2])
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+    ground = np.zeros(len(pts), dtype=bool)
+    ground[inside] = grid.state[rc[inside, 0], rc[inside, 1]] == GROUND
+    n_inside = np.add.reduceat(inside.astype(np.int64), starts)
+    n_ground = np.add.reduceat(ground.astype(np.int64), starts)
+    gone = {o.key for o, ni, ng in zip(stale, n_inside, n_ground) if ni > 0 and ng >= free_share * ni}
+    return [o for o in shared if o.key not in gone]
 
 
 def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:

@@ -1,0 +1,576 @@
+"""``autocast report SWEEP_DIR``: the paper's tables and plots from a sweep's results.
+
+Reads ``results.jsonl`` (the last record of each run key), ``plan.json`` (what was
+planned) and, for the scheduled-delay plot, the MCAPs of runs with a V2V schedule.
+Writes into ``SWEEP_DIR/report/`` (``--out``):
+
+- ``outcomes.png``: outcome shares per scheme (paper: "Scenario outcome")
+- ``safe_vs_density.png``: safe passage vs connected vehicles per scheme
+- ``visibility_vs_density.png``: collider visibility, share of ticks and mean points,
+  vs density (paper: "Collider visibility", on red-light violation when it was run)
+- ``reaction_closest.png``: reaction time and closest distance per scenario and scheme
+- ``scheduled_delay.png``: when each transmitted object arrived in its interval vs its
+  reward (paper: "Scheduled delay", 20 vehicles)
+- ``summary.md``: the tables, with "safe passage % by scheme x density"
+
+A plot without data says so instead of failing. Exit code 0, or 2 when the directory
+holds no sweep.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+from collections import Counter, defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deploy.sweep import PLAN, RESULTS, latest, read_results
+
+log = logging.getLogger("deploy.report")
+
+OUTCOMES = ("safe", "near_miss", "crash", "deadlock")
+SCHEME_ORDER = ("single", "emp", "agnostic", "autocast", "autocast-fptas", "lane")
+V2V_SCHEMES = ("agnostic", "autocast", "autocast-fptas")  # a schedule over the V2V channel to plot
+SCHEME_COLOR = {"single": "tab:gray", "emp": "tab:blue", "agnostic": "tab:orange", "autocast": "tab:red",
+                "autocast-fptas": "tab:pink", "lane": "tab:brown"}
+OUTCOME_COLOR = {"safe": "tab:green", "near_miss": "gold", "crash": "tab:red", "deadlock": "tab:purple"}
+VISIBILITY_SCENARIO = "red_light"  # the paper's collider-visibility figure uses scenario C
+DELAY_VEHICLES = 20  # the paper's scheduled-delay figure: 20 cars
+FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "reaction_closest.png",
+           "scheduled_delay.png")
+PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
+              "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
+
+
+# ---------------------------------------------------------------------------- tables (pure)
+
+
+def schemes_in(records: Iterable[dict[str, Any]]) -> list[str]:
+    """The schemes present, in the paper's order (baselines first)."""
+    present = {r["scheme"] for r in records}
+    return [s for s in SCHEME_ORDER if s in present] + sorted(present - set(SCHEME_ORDER))
+
+
+def judged(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [r for r in records if r.get("status") == "judged" and r.get("outcome") in OUTCOMES]
+
+
+def outcome_counts(records: Sequence[dict[str, Any]]) -> dict[str, Counter]:
+    """Per scheme: how many runs ended in each outcome, and how many ``failed``."""
+    out: dict[str, Counter] = {s: Counter() for s in schemes_in(records)}
+    for r in records:
+        out[r["scheme"]][r["outcome"] if r.get("status") == "judged" and r.get("outcome") in OUTCOMES
+                         else "failed"] += 1
+    return out
+
+
+def safe_by_density(records: Sequence[dict[str, Any]]) -> dict[tuple[str, int], tuple[int, int]]:
+    """(scheme, vehicles) -> (safe runs, judged runs)."""
+    out: dict[tuple[str, int], list[int]] = defaultdict(lambda: [0, 0])
+    for r in judged(records):
+        cell = out[(r["scheme"], r["vehicles"])]
+        cell[0] += r["outcome"] == "safe"
+        cell[1] += 1
+    return {k: (v[0], v[1]) for k, v in out.items()}
+
+
+@dataclass(frozen=True, slots=True)
+class Visibility:
+    runs: int
+    share_mean: float  # share of ticks the collider was in the ego's fused view (>= 5 points)
+    points_mean: float  # collider points in the ego's fused view, mean over ticks
+
+
+def visibility_by_density(records: Sequence[dict[str, Any]]) -> dict[tuple[str, int], Visibility]:
+    """(scheme, vehicles) -> the collider's visibility in the ego's fused view, mean over runs."""
+    groups: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
+    for r in judged(records):
+        if r.get("collider_visible_share") is not None:
+            groups[(r["scheme"], r["vehicles"])].append(r)
+    return {k: Visibility(len(g), statistics.fmean(r["collider_visible_share"] for r in g),
+                          statistics.fmean(r.get("collider_points_mean") or 0.0 for r in g))
+            for k, g in groups.items()}
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioRow:
+    runs: int
+    outcomes: Counter
+    reaction_mean_s: float  # a run in which the ego never saw the collider in time counts 0 s
+    reaction_max_s: float
+    closest_mean_m: float
+    closest_min_m: float
+
+
+def per_scenario(records: Sequence[dict[str, Any]]) -> dict[tuple[str, str], ScenarioRow]:
+    """(scenario, scheme) -> outcomes, reaction time, closest distance of its judged runs."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
+    for r in judged(records):
+        groups[(r["scenario"], r["scheme"])].append(r)
+    out = {}
+    for k, g in groups.items():
+        reaction = [r.get("reaction_time_s") or 0.0 for r in g]
+        closest = [r["closest_distance_m"] for r in g]
+        out[k] = ScenarioRow(len(g), Counter(r["outcome"] for r in g), statistics.fmean(reaction), max(reaction),
+                             statistics.fmean(closest), min(closest))
+    return out
+
+
+# ---------------------------------------------------------------------------- scheduled delay
+
+
+@dataclass(frozen=True, slots=True)
+class Sent:
+    """One object a vehicle transmitted in one interval, as the channel played it."""
+
+    tick: int
+    sender: int
+    object_id: int
+    reward: float  # sum over the sender's receivers of (1 - v) r: H at the interval's first frame
+    size_bytes: int
+    delay_s: float  # end of its first airtime, from the start of the interval's data phase
+    copies: int  # how often it went on air this interval
+
+
+def schedule_of_run(mcap_path: Path) -> list[Sent]:
+    """Every transmitted object of a run: the channel proxy's per-interval record of each
+    transmission (``net/stats``: sender, object, start, end of airtime) joined with the
+    sender's control message of that interval (``net/ctrl/tx``: the object's v and r)."""
+    from mcap.reader import make_reader
+
+    from protocol.codec import decode
+    from protocol.messages import ChannelStats, ControlMsg
+
+    offers: dict[tuple[int, int], dict[int, tuple[float, int]]] = {}
+    played: dict[tuple[int, int, int], list[float]] = {}
+    with open(mcap_path, "rb") as f:
+        reader = make_reader(f)
+        topics = [ch.topic for ch in reader.get_summary().channels.values()
+                  if "/net/ctrl/tx/" in ch.topic or ch.topic.endswith("/net/stats")]
+        if not any(t.endswith("/net/stats") for t in topics):
+            return []
+        for _, channel, message in reader.iter_messages(topics=topics):
+            try:
+                msg = decode(message.data)
+            except Exception:  # a malformed payload the recorder kept; the rest still counts
+                continue
+            if isinstance(msg, ControlMsg):
+                o = msg.objects
+                reward = ((1.0 - o.visibility.astype(np.float64)) * o.relevance).sum(axis=1) if len(o.object_id) else []
+                offers[(msg.tick, msg.vid)] = {int(k): (float(h), int(s))
+                                               for k, h, s in zip(o.object_id, reward, o.size_bytes)}
+            elif isinstance(msg, ChannelStats):
+                for sender, oid, _start_s, rx_s, *_ in (msg.stats.get("data") or {}).get("objects", []):
+                    played.setdefault((msg.tick, int(sender), int(oid)), []).append(float(rx_s))
+    out = []
+    for (tick, sender, oid), rx in sorted(played.items()):
+        offer = offers.get((tick, sender), {}).get(oid)
+        if offer is not None:
+            out.append(Sent(tick, sender, oid, offer[0], offer[1], min(rx), len(rx)))
+    return out
+
+
+def delay_runs(records: Sequence[dict[str, Any]], vehicles: int | None, per_scheme: int
+               ) -> tuple[int | None, dict[str, list[dict[str, Any]]]]:
+    """The density to plot (``vehicles``, else 20 when run, else the densest) and, per V2V
+    scheme, up to ``per_scheme`` judged runs at it, in plan order."""
+    v2v = [r for r in judged(records) if r["scheme"] in V2V_SCHEMES]
+    if not v2v:
+        return vehicles, {}
+    densities = {r["vehicles"] for r in v2v}
+    if vehicles is None:
+        vehicles = DELAY_VEHICLES if DELAY_VEHICLES in densities else max(densities)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for r in v2v:
+        if r["vehicles"] == vehicles and len(out.setdefault(r["scheme"], [])) < per_scheme:
+            out[r["scheme"]].append(r)
+    return vehicles, {s: rs for s, rs in out.items() if rs}
+
+
+def spearman(x: Sequence[float], y: Sequence[float]) -> float | None:
+    """Rank correlation (ties share their mean rank); None when undefined."""
+    if len(x) < 3:
+        return None
+    rx, ry = _ranks(np.asarray(x, float)), _ranks(np.asarray(y, float))
+    if rx.std() == 0 or ry.std() == 0:
+        return None
+    return float(np.corrcoef(rx, ry)[0, 1])
+
+
+def _ranks(a: np.ndarray) -> np.ndarray:
+    order = np.argsort(a, kind="stable")
+    ranks = np.empty(len(a))
+    ranks[order] = np.arange(len(a), dtype=float)
+    for v in np.unique(a):
+        tie = a == v
+        ranks[tie] = ranks[tie].mean()
+    return ranks
+
+
+@dataclass(frozen=True, slots=True)
+class DelayRow:
+    runs: int
+    sent: int
+    spearman: float | None  # reward vs delay: negative when higher rewards arrive earlier
+    top_median_ms: float | None  # median delay of the objects in the top quarter by reward
+    bottom_median_ms: float | None
+
+
+def delay_table(by_scheme: dict[str, tuple[int, list[Sent]]]) -> dict[str, DelayRow]:
+    out = {}
+    for scheme, (runs, sent) in by_scheme.items():
+        rewards = np.array([s.reward for s in sent])
+        delays_ms = np.array([s.delay_s * 1e3 for s in sent])
+        top = bottom = None
+        if len(sent) >= 4:
+            q1, q3 = np.quantile(rewards, [0.25, 0.75])
+            hi, lo = delays_ms[rewards >= q3], delays_ms[rewards <= q1]
+            top = float(np.median(hi)) if len(hi) else None
+            bottom = float(np.median(lo)) if len(lo) else None
+        out[scheme] = DelayRow(runs, len(sent), spearman(rewards, delays_ms), top, bottom)
+    return out
+
+
+# ---------------------------------------------------------------------------- plots
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _no_data(ax, what: str) -> None:
+    ax.text(0.5, 0.5, f"no data: {what}", ha="center", va="center", transform=ax.transAxes, fontsize=11,
+            color="0.35")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def _save(fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def plot_outcomes(records: Sequence[dict[str, Any]], path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    counts = outcome_counts(records)
+    schemes = [s for s in counts if sum(counts[s][o] for o in OUTCOMES)]
+    if not schemes:
+        _no_data(ax, "no judged runs")
+    else:
+        x = np.arange(len(schemes))
+        bottom = np.zeros(len(schemes))
+        for o in OUTCOMES:
+            share = np.array([100.0 * counts[s][o] / sum(counts[s][q] for q in OUTCOMES) for s in schemes])
+            ax.bar(x, share, bottom=bottom, color=OUTCOME_COLOR[o], label=o.replace("_", " "), width=0.6)
+            for xi, b, h in zip(x, bottom, share):
+                if h >= 6:
+                    ax.text(xi, b + h / 2, f"{h:.0f}%", ha="center", va="center", fontsize=8)
+            bottom += share
+        labels = [f"{s}\n{sum(counts[s][o] for o in OUTCOMES)} runs" + (f", {counts[s]['failed']} failed"
+                                                                        if counts[s]["failed"] else "")
+                  for s in schemes]
+        ax.set_xticks(x, labels)
+        ax.set_ylim(0, 100)
+        ax.set_ylabel("share of judged runs (%)")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
+    ax.set_title("Scenario outcome per scheme (all scenarios, speeds, deltas, densities)")
+    _save(fig, path)
+
+
+def plot_safe_vs_density(records: Sequence[dict[str, Any]], path: Path) -> None:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    table = safe_by_density(records)
+    if not table:
+        _no_data(ax, "no judged runs")
+    else:
+        densities = sorted({n for _, n in table})
+        for s in schemes_in(judged(records)):
+            xs = [n for n in densities if (s, n) in table]
+            ys = [100.0 * table[(s, n)][0] / table[(s, n)][1] for n in xs]
+            ax.plot(xs, ys, "o-", color=SCHEME_COLOR.get(s), label=s, lw=2, alpha=0.85)
+        ax.set_xticks(densities)
+        ax.set_ylim(-3, 103)
+        ax.set_xlabel("connected vehicles in range")
+        ax.set_ylabel("safe passage (% of judged runs)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    ax.set_title("Safe passage vs traffic density")
+    _save(fig, path)
+
+
+def visibility_records(records: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
+    """Red-light violation's runs when the sweep ran it (as the paper's figure), else all."""
+    red = [r for r in records if r["scenario"] == VISIBILITY_SCENARIO]
+    return (red, VISIBILITY_SCENARIO) if judged(red) else (list(records), "all scenarios")
+
+
+def plot_visibility(records: Sequence[dict[str, Any]], path: Path) -> None:
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.5))
+    chosen, which = visibility_records(records)
+    table = visibility_by_density(chosen)
+    if not table:
+        _no_data(a, "no judged runs")
+        _no_data(b, "no judged runs")
+    else:
+        densities = sorted({n for _, n in table})
+        for s in schemes_in(judged(chosen)):
+            xs = [n for n in densities if (s, n) in table]
+            a.plot(xs, [100.0 * table[(s, n)].share_mean for n in xs], "o-", color=SCHEME_COLOR.get(s), label=s)
+            b.plot(xs, [table[(s, n)].points_mean for n in xs], "o-", color=SCHEME_COLOR.get(s), label=s)
+        for ax in (a, b):
+            ax.set_xticks(densities)
+            ax.set_xlabel("connected vehicles in range")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        a.set_ylim(-3, 103)
+        a.set_ylabel("ticks with the collider in view (%)")
+        b.set_ylabel("collider points in view (mean over ticks)")
+    a.set_title(f"Collider visible time vs density ({which})")
+    b.set_title(f"Collider visible size vs density ({which})")
+    fig.suptitle("Collider visibility in the ego's fused view (own + received points; Single: own LiDAR)",
+                 fontsize=10)
+    _save(fig, path)
+
+
+def plot_reaction_closest(records: Sequence[dict[str, Any]], path: Path) -> None:
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
+    table = per_scenario(records)
+    if not table:
+        _no_data(a, "no judged runs")
+        _no_data(b, "no judged runs")
+    else:
+        scenarios = sorted({sc for sc, _ in table})
+        schemes = schemes_in(judged(records))
+        width = 0.8 / len(schemes)
+        for i, s in enumerate(schemes):
+            x = np.arange(len(scenarios)) + (i - (len(schemes) - 1) / 2) * width
+            rows = [table.get((sc, s)) for sc in scenarios]
+            has = [r is not None for r in rows]
+            xs = x[has]
+            got = [r for r in rows if r is not None]
+            a.bar(xs, [r.reaction_mean_s for r in got], width, color=SCHEME_COLOR.get(s), label=s)
+            a.errorbar(xs, [r.reaction_mean_s for r in got],
+                       yerr=[[0] * len(got), [r.reaction_max_s - r.reaction_mean_s for r in got]],
+                       fmt="none", ecolor="k", capsize=2, lw=0.8)
+            b.bar(xs, [r.closest_mean_m for r in got], width, color=SCHEME_COLOR.get(s), label=s)
+            b.plot(xs, [r.closest_min_m for r in got], "v", color="k", ms=5)
+        for ax in (a, b):
+            ax.set_xticks(np.arange(len(scenarios)), scenarios)
+            ax.grid(alpha=0.3, axis="y")
+            ax.legend(fontsize=8)
+        a.set_ylabel("reaction time (s): mean, bar to max")
+        b.axhline(2.0, color="k", ls="--", lw=1)
+        b.text(-0.45, 2.1, "near miss < 2 m", fontsize=8)
+        b.set_ylabel("closest distance (m): mean, triangle = min")
+    a.set_title("Reaction time per scenario (never aware in time = 0 s)")
+    b.set_title("Closest distance ego-collider per scenario")
+    _save(fig, path)
+
+
+def plot_scheduled_delay(by_scheme: dict[str, tuple[int, list[Sent]]], vehicles: int | None, path: Path,
+                         why_empty: str) -> None:
+    plt = _pyplot()
+    schemes = [s for s in SCHEME_ORDER if s in by_scheme] or ["-"]
+    fig, axes = plt.subplots(1, len(schemes), figsize=(5.5 * len(schemes), 4.5), squeeze=False, sharey=True)
+    for ax, s in zip(axes[0], schemes):
+        runs, sent = by_scheme.get(s, (0, []))
+        if not sent:
+            _no_data(ax, why_empty if s == "-" else f"{s}: no transmissions")
+            continue
+        reward = np.array([x.reward for x in sent])
+        delay_ms = np.array([x.delay_s * 1e3 for x in sent])
+        ax.scatter(reward, delay_ms, s=8, alpha=0.35, color=SCHEME_COLOR.get(s), edgecolors="none")
+        edges = np.unique(np.quantile(reward, np.linspace(0, 1, 9)))
+        if len(edges) > 2:
+            idx = np.clip(np.searchsorted(edges, reward, side="right") - 1, 0, len(edges) - 2)
+            mids = [(edges[i] + edges[i + 1]) / 2 for i in range(len(edges) - 1) if np.any(idx == i)]
+            meds = [float(np.median(delay_ms[idx == i])) for i in range(len(edges) - 1) if np.any(idx == i)]
+            ax.plot(mids, meds, "k-o", ms=4, lw=1.5, label="median per reward octile")
+            ax.legend(fontsize=8)
+        ax.set_title(f"{s}: {len(sent)} objects sent, {runs} runs")
+        ax.set_xlabel("object reward H = sum over receivers of (1 - v) r")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("scheduled delay (ms from the interval's start)")
+    fig.suptitle(f"Scheduled delay vs reward{f' ({vehicles} vehicles)' if vehicles else ''}: "
+                 "when each transmitted object arrived in its 100 ms interval", fontsize=10)
+    _save(fig, path)
+
+
+# ---------------------------------------------------------------------------- summary.md
+
+
+def _pct(num: int, den: int) -> str:
+    return f"{100.0 * num / den:.0f}% ({num}/{den})" if den else "-"
+
+
+def _md(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return out
+
+
+def safe_table_md(records: Sequence[dict[str, Any]]) -> list[str]:
+    """Safe-passage % by scheme x density (rows schemes, columns vehicle counts, then all)."""
+    table = safe_by_density(records)
+    densities = sorted({n for _, n in table})
+    rows = []
+    for s in schemes_in(judged(records)):
+        cells = [_pct(*table[(s, n)]) if (s, n) in table else "-" for n in densities]
+        total = [table[(s, n)] for n in densities if (s, n) in table]
+        rows.append([s, *cells, _pct(sum(t[0] for t in total), sum(t[1] for t in total))])
+    return _md(["scheme", *[f"{n} vehicles" for n in densities], "all"], rows)
+
+
+def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[str, Any] | None,
+               delay: dict[str, DelayRow], delay_vehicles: int | None, delay_note: str) -> str:
+    name = (plan or {}).get("spec", {}).get("name", sweep_dir.name)
+    planned = len((plan or {}).get("runs", [])) or len(records)
+    n_judged = len(judged(records))
+    lines = [f"# Sweep report: {name}", "",
+             f"`{sweep_dir}`: {planned} runs planned, {len(records)} recorded ({n_judged} judged, "
+             f"{len(records) - n_judged} failed), {max(0, planned - len(records))} not run yet. "
+             f"Git revision {(plan or {}).get('git_revision', 'unknown')}; report written "
+             f"{time.strftime('%Y-%m-%d %H:%M')}.", "",
+             "Figures: " + ", ".join(f"[{f}]({f})" for f in FIGURES) + ".", "",
+             "Shares are of judged runs; failed runs (no outcome) are counted apart.", ""]
+
+    lines += ["## Outcome shares per scheme", ""]
+    counts = outcome_counts(records)
+    lines += _md(["scheme", "judged", *[o.replace("_", " ") for o in OUTCOMES], "failed"],
+                 [[s, sum(c[o] for o in OUTCOMES), *[_pct(c[o], sum(c[q] for q in OUTCOMES)) for o in OUTCOMES],
+                   c["failed"]] for s, c in counts.items()])
+    lines += ["", "## Safe-passage % by scheme x density", ""]
+    lines += safe_table_md(records)
+    lines += ["", PAPER_SAFE, ""]
+
+    chosen, which = visibility_records(records)
+    vis = visibility_by_density(chosen)
+    densities = sorted({n for _, n in vis})
+    lines += [f"## Collider visibility by scheme x density ({which})", "",
+              "Share of ticks with the collider in the ego's fused view (at least 5 of its points), and its "
+              "mean points per tick; Single's view is its own LiDAR.", ""]
+    lines += _md(["scheme", *[f"{n} vehicles" for n in densities]],
+                 [[s, *[f"{100 * vis[(s, n)].share_mean:.0f}% / {vis[(s, n)].points_mean:.0f} pts"
+                        if (s, n) in vis else "-" for n in densities]] for s in schemes_in(judged(chosen))])
+
+    lines += ["", "## Per scenario: outcomes, reaction time, closest distance", "",
+              "Reaction time: from the ego's first view of the collider to the last moment braking could still "
+              "stop it; a run in which that never happened counts 0 s.", ""]
+    table = per_scenario(records)
+    lines += _md(["scenario", "scheme", "judged", *[o.replace("_", " ") for o in OUTCOMES],
+                  "reaction mean (s)", "closest mean (m)", "closest min (m)"],
+                 [[sc, s, row.runs, *[row.outcomes[o] for o in OUTCOMES], f"{row.reaction_mean_s:.2f}",
+                   f"{row.closest_mean_m:.2f}", f"{row.closest_min_m:.2f}"]
+                  for (sc, s), row in sorted(table.items(), key=lambda kv: (kv[0][0], _order(kv[0][1])))])
+
+    lines += ["", f"## Scheduled delay vs reward ({f'{delay_vehicles} vehicles' if delay_vehicles else 'no V2V runs'})",
+              "", delay_note, ""]
+    if delay:
+        lines += _md(["scheme", "runs", "objects sent", "Spearman(reward, delay)", "median delay, top-quarter reward",
+                      "median delay, bottom-quarter reward"],
+                     [[s, d.runs, d.sent, "-" if d.spearman is None else f"{d.spearman:+.2f}",
+                       "-" if d.top_median_ms is None else f"{d.top_median_ms:.1f} ms",
+                       "-" if d.bottom_median_ms is None else f"{d.bottom_median_ms:.1f} ms"]
+                      for s, d in delay.items()])
+    failed = [r for r in records if r.get("status") != "judged"]
+    if failed:
+        lines += ["", "## Failed runs", ""]
+        lines += _md(["run", "exit code", "failure"],
+                     [[r["run_id"], r.get("exit_code"), str((r.get("error") or {}).get("failure", "")).replace("|", "/")]
+                      for r in failed])
+    dead = [r for r in judged(records) if r.get("dead_agents")]
+    if dead:
+        lines += ["", "## Judged runs with dead agents", "",
+                  "An agent the world declared dead drove with the failsafe brake from then on.", ""]
+        lines += _md(["run", "dead agents"], [[r["run_id"], json.dumps(r["dead_agents"])] for r in dead])
+    return "\n".join(lines) + "\n"
+
+
+def _order(scheme: str) -> int:
+    return SCHEME_ORDER.index(scheme) if scheme in SCHEME_ORDER else len(SCHEME_ORDER)
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="autocast report", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sweep_dir", type=Path, help="a directory autocast sweep wrote")
+    ap.add_argument("--out", type=Path, help="where the figures and summary.md go (default SWEEP_DIR/report)")
+    ap.add_argument("--delay-vehicles", type=int, help="density of the scheduled-delay plot (default 20 when run, "
+                    "else the densest)")
+    ap.add_argument("--delay-runs", type=int, default=12, help="runs per scheme read for it (default 12)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level="INFO", format="autocast report: %(message)s")
+
+    results = args.sweep_dir / RESULTS
+    if not results.exists() and not (args.sweep_dir / PLAN).exists():
+        print(f"error: sweep_dir: {args.sweep_dir} holds no {RESULTS} or {PLAN}", file=sys.stderr)
+        return 2
+    records = list(latest(read_results(results)).values())
+    try:
+        plan = json.loads((args.sweep_dir / PLAN).read_text())
+    except (OSError, ValueError):
+        plan = None
+    out = args.out or args.sweep_dir / "report"
+    out.mkdir(parents=True, exist_ok=True)
+
+    plot_outcomes(records, out / "outcomes.png")
+    plot_safe_vs_density(records, out / "safe_vs_density.png")
+    plot_visibility(records, out / "visibility_vs_density.png")
+    plot_reaction_closest(records, out / "reaction_closest.png")
+
+    vehicles, chosen = delay_runs(records, args.delay_vehicles, args.delay_runs)
+    by_scheme: dict[str, tuple[int, list[Sent]]] = {}
+    for scheme, runs in chosen.items():
+        sent, read = [], 0
+        for r in runs:
+            mcap = args.sweep_dir / "runs" / r["run_id"] / "run.mcap"
+            if mcap.exists():
+                sent += schedule_of_run(mcap)
+                read += 1
+        if read:
+            by_scheme[scheme] = (read, sent)
+    if by_scheme:
+        why = ""
+        note = (f"From the runs' MCAPs (up to {args.delay_runs} runs per scheme at {vehicles} vehicles): each "
+                "object a vehicle transmitted, as the channel proxy played it (`net/stats`: end of its first "
+                "airtime from the start of the interval's data phase), joined with the sender's control message "
+                "of that interval (`net/ctrl/tx`: the object's visibility v and relevance r per receiver). "
+                "Negative Spearman: higher rewards arrive earlier.")
+    else:
+        why = ("no judged V2V run (agnostic, autocast, autocast-fptas)" if not chosen
+               else "the V2V runs' MCAPs are missing")
+        note = f"No data: {why}."
+    plot_scheduled_delay(by_scheme, vehicles if by_scheme else None, out / "scheduled_delay.png", why)
+
+    (out / "summary.md").write_text(summary_md(args.sweep_dir, records, plan, delay_table(by_scheme),
+                                               vehicles if by_scheme else None, note))
+    log.info("%d runs -> %s: %s, summary.md", len(records), out, ", ".join(FIGURES))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,300 @@
+"""``autocast sweep`` and ``autocast report``: the matrix, the estimate and the tables by
+hand; then real sweeps (real runs on loopback) into a temporary directory: smoke,
+resume, a failed run, Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from deploy import report, sweep
+from deploy.sweep import RunKey
+
+# ---------------------------------------------------------------------------- the matrix
+
+
+def spec(**over) -> sweep.SweepSpec:
+    values = {**sweep.PRESETS["smoke"], **over}
+    return sweep.spec_from(values, "t")
+
+
+def test_expand_is_the_product_in_plan_order():
+    s = spec(vehicles=[10, 5], schemes=["single", "autocast"], deltas_s=[-1, 1], seeds=[0, 1])
+    keys = sweep.expand(s)
+    assert len(keys) == 2 * 2 * 2 * 2 == s.size()
+    assert len({k.name for k in keys}) == len(keys)
+    # seed outermost, densities ascending, the schemes of one configuration next to each other
+    assert [(k.seed, k.vehicles, k.delta_s, k.scheme) for k in keys[:4]] == [
+        (0, 5, -1.0, "single"), (0, 5, -1.0, "autocast"), (0, 5, 1.0, "single"), (0, 5, 1.0, "autocast")]
+    assert keys[4].vehicles == 10 and keys[-1].seed == 1
+
+
+def test_paper_preset_is_the_papers_matrix():
+    s = sweep.spec_from(sweep.PRESETS["paper"], "paper")
+    assert s.size() == 3 * 3 * 5 * 4 * 4 == 720
+    assert s.schemes == ("single", "agnostic", "emp", "autocast")
+    assert s.collider_speeds_kmh == (20.0, 30.0, 40.0) and s.vehicles == (5, 10, 20, 40)
+
+
+def test_run_key_name_is_a_valid_run_id():
+    k = RunKey("left_turn", 10, 30.0, -0.5, "autocast-fptas", 3, 20.0)
+    assert k.name == "left_turn-v10-c30-d-0p5-autocast-fptas-s3-t20"
+    from protocol import keys
+
+    keys.everything(k.name)  # raises on a character a Zenoh key of the run cannot hold
+    assert k.run_flags()[k.run_flags().index("--delta") + 1] == "-0.5"
+
+
+@pytest.mark.parametrize("over, message", [
+    ({"vehicles": [5, 500]}, "vehicles: 500 is not in [2, 64]"),
+    ({"schemes": ["telepathy"]}, "schemes: 'telepathy' is not one of"),
+    ({"scenarios": ["roundabout"]}, "scenarios: 'roundabout' is not one of"),
+    ({"deltas_s": []}, "deltas_s: [] is not a non-empty list"),
+    ({"vehicle": [5]}, "vehicle: unknown field"),
+    ({"timeout_s": 0}, "timeout_s: 0 is not a number > 0"),
+    ({"scans": "most"}, "scans: 'most' is not one of"),
+])
+def test_bad_fields_are_named(over, message):
+    with pytest.raises(sweep.SweepError) as err:
+        spec(**over)
+    assert str(err.value).startswith(message)
+
+
+def test_duplicates_collapse_and_numbers_coerce():
+    s = spec(vehicles=[5, 5, 10], collider_speeds_kmh=[30, 30.0])
+    assert s.vehicles == (5, 10) and s.collider_speeds_kmh == (30.0,)
+
+
+def test_cli_refuses_bad_input_naming_the_field(tmp_path, capsys):
+    assert sweep.main(["--preset", "nope"]) == 2
+    assert "error: preset: 'nope' is not one of paper, smoke" in capsys.readouterr().err
+    assert sweep.main(["--preset", "smoke", "--vehicles", "5,500", "--dry-run"]) == 2
+    assert "error: vehicles: 500 is not in [2, 64]" in capsys.readouterr().err
+    f = tmp_path / "s.toml"
+    f.write_text('preset = "smoke"\nvehicle = [5]\n')
+    assert sweep.main(["--file", str(f), "--dry-run"]) == 2
+    assert "error: vehicle: unknown field" in capsys.readouterr().err
+    f.write_text("vehicles = [5\n")
+    assert sweep.main(["--file", str(f)]) == 2
+    assert "is not valid TOML" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "sw"
+    assert sweep.main(["--preset", "paper", "--vehicles", "5,20", "--scenarios", "left_turn", "--out", str(out),
+                       "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert "120 runs = 1 scenario x 3 collider speeds x 5 deltas x 2 vehicle counts x 4 schemes x 1 seed" in text
+    assert "to run: 120" in text and "estimated wall time" in text
+    assert not out.exists()
+
+
+def test_estimate_interpolates_the_measured_model(monkeypatch):
+    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {10: 10.0, 20: 20.0})
+    monkeypatch.setattr(sweep, "MODEL_TICK_S", {10: 0.1, 20: 0.3})
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", 10.0)
+    key = RunKey("left_turn", 15, 30.0, 0.0, "autocast", 0, 20.0)
+    assert sweep.estimate_run_s(key) == pytest.approx(15.0 + 100 * 0.2)  # 10 s of sim = 100 ticks
+    short = RunKey("left_turn", 30, 30.0, 0.0, "autocast", 0, 5.0)  # beyond the table: linear; 50 ticks
+    assert sweep.estimate_run_s(short) == pytest.approx(30.0 + 50 * 0.5)
+
+
+# ---------------------------------------------------------------------------- records
+
+
+KEY = RunKey("red_light", 5, 20.0, 1.0, "autocast", 0, 20.0)
+
+
+def test_record_of_a_judged_run_keeps_scalars_not_the_series():
+    outcome = {"outcome": "near_miss", "closest_distance_m": 1.5, "reaction_time_s": None, "scenario": "red_light",
+               "vehicles": 5, "distance_series_m": [[0.1 * i, 50.0] for i in range(200)], "dead_agents": {}}
+    rec = sweep.record_of(KEY, KEY.name, 1, "outcome: near_miss ...\n" + json.dumps(outcome) + "\n", "", 12.3)
+    assert rec["status"] == "judged" and rec["outcome"] == "near_miss" and rec["exit_code"] == 1
+    assert rec["run_key"] == KEY.name and rec["scheme"] == "autocast" and rec["closest_distance_m"] == 1.5
+    assert "distance_series_m" not in rec and "error" not in rec
+
+
+def test_record_of_a_failed_run_keeps_its_error():
+    rec = sweep.record_of(KEY, KEY.name, 3, json.dumps({"outcome": None, "failure": "world exited"}) + "\n",
+                          "lots\nof\nstderr", 4.0)
+    assert rec["status"] == "failed" and rec["error"]["failure"] == "world exited"
+    assert rec["error"]["exit_code"] == 3 and rec["error"]["stderr_tail"].endswith("stderr")
+    crashed = sweep.record_of(KEY, KEY.name, 1, "", "Traceback ...\nZeroDivisionError", 1.0)
+    assert crashed["status"] == "failed" and crashed["outcome"] is None
+    assert crashed["error"]["failure"] == "exit code 1 without an outcome"
+
+
+def test_results_survive_a_torn_line_and_the_last_attempt_wins(tmp_path):
+    path = tmp_path / "results.jsonl"
+    sweep.append_record(path, {"run_key": "a", "status": "failed"})
+    sweep.append_record(path, {"run_key": "b", "status": "judged"})
+    sweep.append_record(path, {"run_key": "a", "status": "judged"})
+    with open(path, "a") as f:
+        f.write('{"run_key": "c", "sta')  # killed mid-write
+    recs = sweep.read_results(path)
+    assert [r["run_key"] for r in recs] == ["a", "b", "a"]
+    assert {k: r["status"] for k, r in sweep.latest(recs).items()} == {"a": "judged", "b": "judged"}
+
+
+# ---------------------------------------------------------------------------- report tables
+
+
+def rec(scheme, vehicles, outcome, scenario="left_turn", share=None, points=None, reaction=None, closest=5.0):
+    status = "judged" if outcome else "failed"
+    return {"run_key": f"{scenario}-{scheme}-{vehicles}-{len(RECS)}", "run_id": f"r{len(RECS)}",
+            "scheme": scheme, "vehicles": vehicles, "scenario": scenario, "status": status, "outcome": outcome,
+            "collider_visible_share": share, "collider_points_mean": points, "reaction_time_s": reaction,
+            "closest_distance_m": closest, "exit_code": 0 if outcome == "safe" else 1 if outcome else 3,
+            **({} if outcome else {"error": {"failure": "no outcome within 1 s of wall time"}})}
+
+
+RECS: list[dict] = []
+for args in [("single", 5, "safe", "left_turn", 0.2, 100.0, None, 3.0),
+             ("single", 5, "crash", "red_light", 0.0, 0.0, None, 0.0),
+             ("single", 10, "near_miss", "red_light", 0.4, 300.0, 1.0, 1.2),
+             ("single", 10, None),
+             ("autocast", 5, "safe", "left_turn", 1.0, 900.0, 12.0, 6.0),
+             ("autocast", 5, "safe", "red_light", 0.8, 500.0, 10.0, 4.0),
+             ("autocast", 10, "deadlock", "red_light", 0.6, 700.0, 8.0, 9.0)]:
+    RECS.append(rec(*args))
+
+
+def test_outcome_counts_and_safe_by_density():
+    counts = report.outcome_counts(RECS)
+    assert list(counts) == ["single", "autocast"]  # the paper's order: baselines first
+    assert counts["single"] == Counter(safe=1, crash=1, near_miss=1, failed=1)
+    assert report.safe_by_density(RECS) == {("single", 5): (1, 2), ("single", 10): (0, 1),
+                                            ("autocast", 5): (2, 2), ("autocast", 10): (0, 1)}
+    md = "\n".join(report.safe_table_md(RECS))
+    assert "| scheme | 5 vehicles | 10 vehicles | all |" in md
+    assert "| single | 50% (1/2) | 0% (0/1) | 33% (1/3) |" in md
+    assert "| autocast | 100% (2/2) | 0% (0/1) | 67% (2/3) |" in md
+
+
+def test_visibility_uses_red_light_when_run():
+    chosen, which = report.visibility_records(RECS)
+    assert which == "red_light" and {r["scenario"] for r in chosen} == {"red_light"}
+    vis = report.visibility_by_density(chosen)
+    assert vis[("autocast", 5)].share_mean == pytest.approx(0.8)
+    assert vis[("single", 10)].points_mean == pytest.approx(300.0)
+    assert ("single", 10) in vis and vis[("single", 10)].runs == 1  # the failed run is not averaged
+
+
+def test_per_scenario_counts_never_aware_as_zero_reaction():
+    rows = report.per_scenario(RECS)
+    red_single = rows[("red_light", "single")]
+    assert red_single.runs == 2 and red_single.reaction_mean_s == pytest.approx(0.5)  # (0 + 1) / 2
+    assert red_single.closest_min_m == 0.0 and red_single.closest_mean_m == pytest.approx(0.6)
+    assert rows[("red_light", "autocast")].outcomes == Counter(safe=1, deadlock=1)
+
+
+def test_spearman_and_delay_table():
+    assert report.spearman([1, 2, 3, 4], [40, 30, 20, 10]) == pytest.approx(-1.0)
+    assert report.spearman([0, 0, 0], [1, 2, 3]) is None
+    sent = [report.Sent(1, 0, k, float(k), 100, 0.01 * (8 - k), 1) for k in range(8)]
+    row = report.delay_table({"autocast": (1, sent)})["autocast"]
+    assert row.sent == 8 and row.spearman == pytest.approx(-1.0)
+    assert row.top_median_ms == pytest.approx(15.0)  # rewards 6, 7 -> 20 ms, 10 ms
+    assert row.bottom_median_ms == pytest.approx(75.0)  # rewards 0, 1 -> 80 ms, 70 ms
+
+
+def test_report_of_an_empty_sweep_says_no_data(tmp_path):
+    (tmp_path / "results.jsonl").write_text("")
+    assert report.main([str(tmp_path)]) == 0
+    for name in report.FIGURES:
+        assert (tmp_path / "report" / name).stat().st_size > 1000
+    assert "No data" in (tmp_path / "report" / "summary.md").read_text()
+    assert report.main([str(tmp_path / "nowhere")]) == 2
+
+
+# ---------------------------------------------------------------------------- real sweeps
+
+
+def autocast(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "deploy.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def leftovers(run_ids) -> list[str]:
+    out = subprocess.run(["pgrep", "-af", "|".join(f"--run-id {r}( |$)" for r in run_ids)], capture_output=True,
+                         text=True)
+    return [line for line in out.stdout.splitlines() if "pgrep" not in line]
+
+
+def lines(path: Path) -> list[dict]:
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def test_smoke_sweep_resume_and_report(tmp_path):
+    out = tmp_path / "smoke"
+    first = autocast("sweep", "--preset", "smoke", "--out", str(out))
+    assert first.returncode == 0, first.stderr
+    results = lines(out / "results.jsonl")
+    assert [r["run_key"] for r in results] == ["left_turn-v5-c30-d0-single-s0-t20",
+                                               "left_turn-v5-c30-d0-autocast-s0-t20"]
+    for r in results:
+        assert r["status"] == "judged" and r["outcome"] in report.OUTCOMES
+        assert (out / "runs" / r["run_id"] / "outcome.json").exists()
+        assert "distance_series_m" not in r
+    assert "[2/2]" in first.stderr
+    assert json.loads((out / "plan.json").read_text())["spec"]["name"] == "smoke"
+    assert not leftovers(r["run_id"] for r in results)
+
+    again = autocast("sweep", "--preset", "smoke", "--out", str(out))
+    assert again.returncode == 0 and "nothing to run" in again.stderr
+    assert len(lines(out / "results.jsonl")) == 2
+
+    rep = autocast("report", str(out))
+    assert rep.returncode == 0, rep.stderr
+    for name in report.FIGURES:
+        assert (out / "report" / name).stat().st_size > 5000
+    summary = (out / "report" / "summary.md").read_text()
+    assert "| scheme | 5 vehicles | all |" in summary
+    assert "| single | " in summary and "| autocast | " in summary
+    assert "2 runs planned, 2 recorded (2 judged, 0 failed)" in summary
+
+
+def test_a_failed_run_is_recorded_with_its_error(tmp_path):
+    f = tmp_path / "fail.toml"
+    f.write_text('preset = "smoke"\nschemes = ["single"]\ntimeout_s = 1\n')
+    out = tmp_path / "fail"
+    res = autocast("sweep", "--file", str(f), "--out", str(out))
+    assert res.returncode == 1, res.stderr
+    [r] = lines(out / "results.jsonl")
+    assert r["status"] == "failed" and r["outcome"] is None and r["exit_code"] == 3
+    assert "no outcome within 1 s" in r["error"]["failure"]
+    assert "FAILED (exit 3)" in res.stderr
+    assert not leftovers([r["run_id"]])
+    assert report.main([str(out)]) == 0
+    assert "| left_turn-v5-c30-d0-single-s0-t20 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
+
+
+def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
+    out = tmp_path / "stop"
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "sweep", "--preset", "smoke", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    run_id = "left_turn-v5-c30-d0-single-s0-t20"
+    pids = out / "runs" / run_id / "pids.json"
+    try:
+        deadline = time.monotonic() + 60
+        while not pids.exists():
+            assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else ""
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert not leftovers([run_id])
+    assert not (out / "results.jsonl").exists() or not lines(out / "results.jsonl")
+    assert "the same command resumes" in err

@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in range(ticks + 5):  # the first ticks compile / load the numba cache
         views = sim.sense(sim.connected_vids)
         t = sim.t_sim_s
-        scans = {vid: Scan(sim.tick, t, vid, v.pose, v.speed_mps, v.points) for vid, v in views.items()}
+        scans = {vid: Scan(sim.tick, t, vid, v.pose, v.speed_mps, v.range_cm) for vid, v in views.items()}
         msgs = [ControlMsg(sim.tick, t, vid, v.pose, v.speed_mps,
                            lane_trajectory(sim.scenario.actors[vid].route, v.pose, sim.scenario.actors[vid].speed_mps, t),
                            _empty_map(), np.zeros(0, np.int64)) for vid, v in views.items()]

@@ -217,7 +217,7 @@ def _warm_agent_kernels(sim) -> None:
     heard: list[int] = []
     for vid, agent in agents.items():  # two vehicles, so each has a neighbour to reason about
         v = views[vid]
-        scan = Scan(0, 0.0, vid, v.pose, v.speed_mps, v.points)
+        scan = Scan(0, 0.0, vid, v.pose, v.speed_mps, v.range_cm)
         view = agent.perceive(scan)
         msg = agent.control_message(view, scan, heard)
         for other in agents.values():

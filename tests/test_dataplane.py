@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from protocol.codec import MalformedMessage
-from protocol.messages import LidarConfig, Pose
-from vehicle_agent.frames import sensor_to_world, world_to_sensor
+from protocol.messages import LidarConfig, Pose, Scan
+from vehicle_agent.frames import scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import ABOVE, DrivableRaster, GridSpec, build_grid, extract_objects
 from vehicle_agent.spatial import relevance, visibility, visible_share
@@ -26,6 +26,19 @@ def perceive(boxes, pose=SENSOR, mount=1.9, drivable=OPEN_FIELD):
     world = sensor_to_world(pts, pose, mount)
     grid, cell_idx = build_grid(world, (pose.x_m, pose.y_m), GridSpec(), DrivableRaster(drivable, 0.5))
     return grid, extract_objects(world, grid, cell_idx, (pose.x_m, pose.y_m))
+
+
+def test_scan_to_world_places_the_range_image_like_sensor_to_world():
+    """The agent's one-pass decoding of a scan equals decoding to sensor points and then
+    transforming them, for a rotated, shifted vehicle."""
+    cfg = LidarConfig()
+    pose = Pose(12.0, -7.0, 2.1)
+    sweep = lidar.scan_many(np.array([[20.0, -3.0, 0.4, 4.5, 1.8, 1.5]]), np.array([[12.0, -7.0, 2.1]]),
+                            np.array([1.9]), cfg, np.array([-1]))[0]
+    scan = Scan(0, 0.0, 0, pose, 0.0, sweep.range_cm)
+    expected = sensor_to_world(scan.points(cfg), pose, cfg.mount_height_m)
+    np.testing.assert_allclose(scan_to_world(scan, cfg), expected, atol=1e-4)
+    assert np.abs(expected[sweep.labels == lidar.GROUND, 2]).max() < 0.01  # ground comes back at z = 0
 
 
 def test_a_wall_is_one_object_with_its_extent():

@@ -24,7 +24,7 @@ def left_turn_at_5s():
     ctl = {a.vid: VehicleController(a.spec) for a in sim.scenario.connected()}
     while True:
         views = sim.sense(sim.connected_vids)
-        scans = {vid: Scan(sim.tick, sim.t_sim_s, vid, v.pose, v.speed_mps, v.points) for vid, v in views.items()}
+        scans = {vid: Scan(sim.tick, sim.t_sim_s, vid, v.pose, v.speed_mps, v.range_cm) for vid, v in views.items()}
         perceived = {vid: planes[vid].perceive(scans[vid]) for vid in planes}
         if sim.t_sim_s >= 5.0 - 1e-9:
             return sim, planes, scans, perceived

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from protocol.messages import LidarConfig
+from protocol.messages import LidarConfig, Pose, Scan
 from world_server.lidar import scan, scan_many
 
 CFG = LidarConfig()  # 64 beams, +2.0 .. -24.8 deg, 1800 azimuths, 100 m
@@ -201,7 +201,7 @@ def test_scan_many_equals_repeated_scan() -> None:
     skips = np.arange(k)
     many = scan_many(boxes, sensors, heights, CFG, skips)
     assert len(many) == k
-    for i, (pts, lbl) in enumerate(many):
+    for i, (pts, lbl, _) in enumerate(many):
         ref_pts, ref_lbl = scan(boxes, sensors[i], heights[i], CFG, skip_box=i)
         np.testing.assert_array_equal(pts, ref_pts)
         np.testing.assert_array_equal(lbl, ref_lbl)
@@ -257,3 +257,17 @@ def test_matches_brute_force_on_random_scenes() -> None:
         np.testing.assert_array_equal(lbl, order[keep])
         d_ref = best.T[keep]
         np.testing.assert_allclose(np.hypot(pts[:, 0], pts[:, 1]), d_ref, rtol=1e-5, atol=1e-4)
+
+
+def test_range_image_carries_the_points() -> None:
+    """The range image the world sends decodes to the sweep's points: same rays, same
+    order, within the 0.5 cm rounding of the horizontal distance."""
+    rng = np.random.default_rng(3)
+    boxes = random_scene(rng, 25)
+    sweep = scan_many(boxes, boxes[:1, :3], np.array([1.9]), CFG, np.array([0]))[0]
+    assert sweep.range_cm.shape == (CFG.azimuth_steps, CFG.beams) and sweep.range_cm.dtype == np.uint16
+    assert np.count_nonzero(sweep.range_cm) == len(sweep.points)
+    back = Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, sweep.range_cm).points(CFG)
+    horiz_err = np.abs(np.hypot(back[:, 0], back[:, 1]) - np.hypot(sweep.points[:, 0], sweep.points[:, 1]))
+    assert horiz_err.max() <= 0.005 + 1e-4
+    np.testing.assert_allclose(back, sweep.points, atol=0.006)

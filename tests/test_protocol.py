@@ -12,7 +12,7 @@ def _examples():
     spec = VehicleSpec(4.5, 1.8, 1.5, 2.7, 3.0, 7.5, 0.6)
     lane = Lane("S.in.0", np.array([[0.0, 0.0], [0.0, 10.0]]), 3.5, 13.9, 0, 10.0)
     return [
-        Scan(3, 0.3, 7, Pose(1.0, -2.0, 0.5), 4.0, np.arange(30, dtype=np.float32).reshape(10, 3)),
+        Scan(3, 0.3, 7, Pose(1.0, -2.0, 0.5), 4.0, np.arange(30, dtype=np.uint16).reshape(10, 3)),
         Command(3, 0.3, 7, -2.5, 0.1),
         Tick(3, 0.3, [0, 1, 4], [LightState(0, "green")]),
         Mission(0, 0.0, 2, "background", np.zeros((2, 2)), 12.0, spec, LidarConfig(), 0.1),
@@ -35,14 +35,28 @@ def test_round_trip(msg):
 
 
 def test_empty_arrays_round_trip():
-    msg = Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, np.zeros((0, 3), np.float32))
-    assert decode(encode(msg), Scan).points.shape == (0, 3)
+    msg = Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, np.zeros((0, 3), np.uint16))
+    assert decode(encode(msg), Scan).range_cm.shape == (0, 3)
 
 
-def test_scan_points_travel_without_tolist():
-    pts = np.random.default_rng(0).random((30000, 3), dtype=np.float32)
-    payload = encode(Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, pts))
-    assert len(payload) < pts.nbytes + 200  # raw bytes, not a list of floats
+def test_scan_ranges_travel_without_tolist():
+    ranges = np.random.default_rng(0).integers(0, 10000, (1800, 64), dtype=np.uint16)
+    payload = encode(Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, ranges))
+    assert len(payload) < ranges.nbytes + 200  # raw bytes, not a list of numbers
+
+
+def test_scan_points_from_a_hand_made_range_image():
+    """Four azimuths (-180, -90, 0, 90 deg) by two beams (+10, -10 deg): each return is at
+    horizontal distance d along its azimuth and d * tan(elevation) above the sensor."""
+    lidar = LidarConfig(beams=2, fov_up_deg=10.0, fov_down_deg=-10.0, azimuth_steps=4)
+    ranges = np.zeros((4, 2), np.uint16)
+    ranges[2, 0] = 1000  # 10 m straight ahead, upper beam
+    ranges[3, 1] = 550  # 5.5 m to the left, lower beam
+    pts = Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, ranges).points(lidar)
+    t = np.tan(np.deg2rad(10.0))
+    np.testing.assert_allclose(pts, [[10.0, 0.0, 10.0 * t], [0.0, 5.5, -5.5 * t]], atol=1e-5)
+    with pytest.raises(ValueError, match="does not fit"):
+        Scan(0, 0.0, 0, Pose(0, 0, 0), 0.0, ranges).points(LidarConfig())
 
 
 def _envelope(*fields):
@@ -55,8 +69,9 @@ def _envelope(*fields):
     (_envelope(5, 2, 0, 0.0, 1, 0.0, 0.0), "version"),
     (_envelope(5, 1, 0, 0.0, 1, 0.0), "needs 5 fields"),
     (_envelope(5, 1, "zero", 0.0, 1, 0.0, 0.0), "expected an int"),
-    (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<f4", [10, 3], b"\x00" * 12]), "do not fill"),
-    (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["O", [1], b"\x00"]), "bad array dtype"),
+    (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [10, 3], b"\x00" * 60]), "version"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [10, 3], b"\x00" * 12]), "do not fill"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["O", [1], b"\x00"]), "bad array dtype"),
     (msgpack.packb({"tick": 1}), "not a message envelope"),
 ])
 def test_malformed_payloads_raise_one_named_error(payload, why):

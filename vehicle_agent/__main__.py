@@ -24,7 +24,7 @@ from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_p
 from vehicle_agent.agent import Agent, LaneFollower
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
-from vehicle_agent.frames import sensor_to_world
+from vehicle_agent.frames import scan_to_world
 from vehicle_agent.link import V2VLink
 from vehicle_agent.warmup import warm_up
 
@@ -199,7 +199,7 @@ class Pipeline:
     def _emp(self, scan: Scan) -> np.ndarray | None:
         """Upload our Voronoi segment of the full scan; return the relay's segments' points
         (world frame), which perception then sees as if our own (EMP merges point clouds)."""
-        world = sensor_to_world(scan.points, scan.pose, self.mission.lidar.mount_height_m)
+        world = scan_to_world(scan, self.mission.lidar)
         own_xy = np.array([scan.pose.x_m, scan.pose.y_m])
         others = np.array([xy for v, xy in sorted(self.emp_sites.items()) if v != self.mission.vid]).reshape(-1, 2)
         segment = world[voronoi_segment(world[:, :2], own_xy, others)]

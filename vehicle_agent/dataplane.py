@@ -17,7 +17,7 @@ import numpy as np
 from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.paths import arc_lengths, progress_along
-from vehicle_agent.frames import sensor_to_world, world_to_sensor
+from vehicle_agent.frames import scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedObject, fuse, not_contradicted, not_me
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, extract_objects
@@ -128,7 +128,7 @@ class DataPlane:
         sent as raw point clouds (the EMP baseline), perceived as if our own."""
         self.timings_ms = {}
         with self._timed("grid"):
-            world = sensor_to_world(scan.points, scan.pose, self.mount_m)
+            world = scan_to_world(scan, self.mission.lidar)
             if extra_world is not None and len(extra_world):
                 world = np.concatenate([world, extra_world[:, :3]])
             grid, cell_idx = build_grid(world, (scan.pose.x_m, scan.pose.y_m), self.spec, self.raster)

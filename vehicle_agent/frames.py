@@ -7,9 +7,12 @@ z = height above the (flat) ground. The paper's V_r = T_r^-1 T_s V_s is
 
 from __future__ import annotations
 
-import numpy as np
+import functools
 
-from protocol.messages import Pose
+import numpy as np
+from numba import njit
+
+from protocol.messages import LidarConfig, Pose, Scan
 
 
 def sensor_to_world(points: np.ndarray, pose: Pose, mount_height_m: float) -> np.ndarray:
@@ -30,4 +33,52 @@ def world_to_sensor(world: np.ndarray, pose: Pose, mount_height_m: float) -> np.
     out[:, 0] = c * dx + s * dy
     out[:, 1] = -s * dx + c * dy
     out[:, 2] = world[:, 2] - mount_height_m
+    return out
+
+
+def scan_to_world(scan: Scan, lidar: LidarConfig) -> np.ndarray:
+    """A scan's returns in the world: float64 (n, 3) x, y, height above ground, azimuth-major.
+
+    The same points as ``sensor_to_world(scan.points(lidar), scan.pose, lidar.mount_height_m)``
+    in one numba pass over the range image.
+    """
+    if scan.range_cm.shape != (lidar.azimuth_steps, lidar.beams):
+        raise ValueError(f"range image {scan.range_cm.shape} does not fit a "
+                         f"{lidar.azimuth_steps} x {lidar.beams} LiDAR")
+    cos_az, sin_az, tan_el = _ray_tables(lidar)
+    return _ranges_to_world(scan.range_cm, cos_az, sin_az, tan_el, scan.pose.x_m, scan.pose.y_m,
+                            scan.pose.yaw_rad, lidar.mount_height_m)
+
+
+@functools.lru_cache(maxsize=4)
+def _ray_tables(lidar: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    az, el = lidar.azimuths_rad(), lidar.elevations_rad()
+    return np.cos(az), np.sin(az), np.tan(el)
+
+
+@njit(cache=True)
+def _ranges_to_world(range_cm: np.ndarray, cos_az: np.ndarray, sin_az: np.ndarray, tan_el: np.ndarray,
+                     x: float, y: float, yaw: float, mount_m: float) -> np.ndarray:
+    n_az, n_beams = range_cm.shape
+    n = 0
+    for i in range(n_az):
+        for b in range(n_beams):
+            if range_cm[i, b] != 0:
+                n += 1
+    out = np.empty((n, 3), dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    j = 0
+    for i in range(n_az):
+        # the ray's horizontal direction in the world
+        wx = c * cos_az[i] - s * sin_az[i]
+        wy = s * cos_az[i] + c * sin_az[i]
+        for b in range(n_beams):
+            r = range_cm[i, b]
+            if r == 0:
+                continue
+            d = r * 0.01
+            out[j, 0] = x + d * wx
+            out[j, 1] = y + d * wy
+            out[j, 2] = mount_m + d * tan_el[b]
+            j += 1
     return out

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.messages import ControlMsg, Pose, Scan
+from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
@@ -22,13 +22,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     x, y = float(m.route[0, 0]), float(m.route[0, 1])
     d = m.route[1] - m.route[0]
     yaw = float(np.arctan2(d[1], d[0]))
-    # a 2 x 2 x 1.5 m block of points 12 m ahead, on the ground plane otherwise
-    gx, gy = np.meshgrid(np.arange(-10.0, 30.0, 0.5), np.arange(-6.0, 6.0, 0.5))
-    ground = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, -m.lidar.mount_height_m)], axis=1)
-    bx, by, bz = np.meshgrid(np.arange(11.0, 13.0, 0.1), np.arange(-1.0, 1.0, 0.1), np.arange(0.3, 1.5, 0.2))
-    block = np.stack([bx.ravel(), by.ravel(), bz.ravel() - m.lidar.mount_height_m], axis=1)
-    points = np.concatenate([ground, block]).astype(np.float32)
-    scan = Scan(0, 0.0, m.vid, Pose(x, y, yaw), m.cruise_speed_mps, points)
+    scan = Scan(0, 0.0, m.vid, Pose(x, y, yaw), m.cruise_speed_mps, synthetic_ranges(m.lidar))
     view = agent.perceive(scan)
     other = m.vid + 1
     other_msg = ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
@@ -43,3 +37,15 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None
+
+
+def synthetic_ranges(lidar: LidarConfig) -> np.ndarray:
+    """A range image of flat ground with a 2 m wide, 1.5 m tall block 11 m straight ahead."""
+    az, el = lidar.azimuths_rad(), lidar.elevations_rad()
+    ground = np.where(el < 0.0, lidar.mount_height_m / np.tan(-np.minimum(el, -1e-6)), 0.0)
+    ground[ground * np.sqrt(1.0 + np.tan(el) ** 2) > lidar.range_m] = 0.0
+    d = np.broadcast_to(ground, (len(az), len(el))).copy()
+    z_at_block = lidar.mount_height_m + 11.0 * np.tan(el)
+    ahead = np.abs(np.arctan2(np.sin(az), np.cos(az))) < np.arctan2(1.0, 11.0)
+    d[np.ix_(ahead, (z_at_block >= 0.0) & (z_at_block <= 1.5))] = 11.0
+    return np.rint(d * 100.0).astype(np.uint16)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -27,6 +28,7 @@ from protocol.messages import LidarConfig
 
 GROUND = -1
 _NO_RETURN = -2  # internal label of a ray that returns nothing
+_MAX_CM = 65535  # uint16 range image: 655 m, far beyond any LidarConfig.range_m we use
 
 # columns of a prepared box row (see _prepare_boxes)
 _CX, _CY, _COS, _SIN, _HALF_L, _HALF_W, _HEIGHT = range(7)
@@ -107,6 +109,12 @@ def _slab(du: float, cu: float, half: float) -> tuple[float, float]:
 
 
 @njit(cache=True)
+def _cm(d: float) -> int:
+    """A horizontal distance on the wire: cm, at least 1 (0 means no return)."""
+    return max(1, min(_MAX_CM, int(d * 100.0 + 0.5)))
+
+
+@njit(cache=True)
 def _scan_kernel(
     prepared: np.ndarray,
     sx: float,
@@ -124,8 +132,13 @@ def _scan_kernel(
     best_d: np.ndarray,
     best_lbl: np.ndarray,
     touched: np.ndarray,
+    range_cm: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Cast one sweep: nearest hit per ray over the boxes' azimuth spans, then compact."""
+    """Cast one sweep: nearest hit per ray over the boxes' azimuth spans, then compact.
+
+    Also fills ``range_cm`` (steps, beams): each ray's horizontal distance in cm, 0 for
+    no return; the points are exactly what ``range_cm`` encodes, before rounding.
+    """
     n_az = cos_phi.shape[0]
     n_beams = tan_theta.shape[0]
     step = 2.0 * math.pi / n_az
@@ -236,36 +249,51 @@ def _scan_kernel(
             for b in range(n_beams):
                 lbl = best_lbl[col, b]
                 if lbl == _NO_RETURN:
+                    range_cm[col, b] = 0
                     continue
                 if lbl == GROUND:
                     points[j, 0] = ground_pts[col, b, 0]
                     points[j, 1] = ground_pts[col, b, 1]
                     points[j, 2] = ground_pts[col, b, 2]
+                    range_cm[col, b] = _cm(ground_d[b])
                 else:
                     d = best_d[col, b]
                     points[j, 0] = d * cos_phi[col]
                     points[j, 1] = d * sin_phi[col]
                     points[j, 2] = d * tan_theta[b]
+                    range_cm[col, b] = _cm(d)
                 labels[j] = lbl
                 j += 1
         else:
+            for b in range(first_ground):
+                range_cm[col, b] = 0
             for b in range(first_ground, n_beams):
                 points[j, 0] = ground_pts[col, b, 0]
                 points[j, 1] = ground_pts[col, b, 1]
                 points[j, 2] = ground_pts[col, b, 2]
                 labels[j] = GROUND
+                range_cm[col, b] = _cm(ground_d[b])
                 j += 1
     return points, labels
 
 
+class Sweep(NamedTuple):
+    """One sweep: what the world keeps (points and ground-truth labels) and what it sends."""
+
+    points: np.ndarray  # float32 (n, 3), sensor frame, azimuth-major
+    labels: np.ndarray  # int32 (n,): box index hit, or GROUND
+    range_cm: np.ndarray  # uint16 (steps, beams): horizontal distance per ray in cm, 0 = none
+
+
 def _scan_prepared(
     prepared: np.ndarray, pose: np.ndarray, sensor_z_m: float, cfg: LidarConfig, skip_box: int
-) -> tuple[np.ndarray, np.ndarray]:
+) -> Sweep:
     cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, first_ground = _tables(
         cfg, float(sensor_z_m)
     )
     best_d, best_lbl, touched = _scratch(cfg.azimuth_steps, cfg.beams)
-    return _scan_kernel(
+    range_cm = np.empty((cfg.azimuth_steps, cfg.beams), dtype=np.uint16)
+    points, labels = _scan_kernel(
         prepared,
         float(pose[0]),
         float(pose[1]),
@@ -282,7 +310,9 @@ def _scan_prepared(
         best_d,
         best_lbl,
         touched,
+        range_cm,
     )
+    return Sweep(points, labels, range_cm)
 
 
 def scan(
@@ -300,7 +330,8 @@ def scan(
     contains the sensor is ignored.
     """
     pose = np.asarray(sensor_xy_yaw, dtype=np.float64).reshape(3)
-    return _scan_prepared(_prepare_boxes(boxes), pose, sensor_z_m, cfg, skip_box)
+    points, labels, _ = _scan_prepared(_prepare_boxes(boxes), pose, sensor_z_m, cfg, skip_box)
+    return points, labels
 
 
 def scan_many(
@@ -309,11 +340,12 @@ def scan_many(
     sensors_z_m: np.ndarray,
     cfg: LidarConfig,
     skip_boxes: np.ndarray,
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[Sweep]:
     """All sensors of a tick, sharing per-tick precomputation (e.g. box corners).
 
     ``sensors_xy_yaw`` is (k, 3), ``sensors_z_m`` (k,), ``skip_boxes`` (k,) int (-1: none).
-    The result equals ``[scan(boxes, sensors_xy_yaw[i], sensors_z_m[i], cfg, skip_boxes[i])]``.
+    Sweep ``i``'s points and labels equal
+    ``scan(boxes, sensors_xy_yaw[i], sensors_z_m[i], cfg, skip_boxes[i])``.
     """
     prepared = _prepare_boxes(boxes)
     poses = np.asarray(sensors_xy_yaw, dtype=np.float64).reshape(-1, 3)

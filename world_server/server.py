@@ -172,7 +172,7 @@ class WorldServer:
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
         for vid in live:
             v = views[vid]
-            self._scan_pubs[vid].put(encode(Scan(k, sim.t_sim_s, vid, v.pose, v.speed_mps, v.points)))
+            self._scan_pubs[vid].put(encode(Scan(k, sim.t_sim_s, vid, v.pose, v.speed_mps, v.range_cm)))
         if self.realtime:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
         else:

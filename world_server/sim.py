@@ -36,6 +36,7 @@ class Sensed:
     speed_mps: float
     points: np.ndarray  # float32 (n, 3), sensor frame
     labels: np.ndarray  # int32 (n,), box index hit or -1 for ground
+    range_cm: np.ndarray  # uint16 (steps, beams): what the vehicle's Scan carries
 
 
 class Simulation:
@@ -84,9 +85,9 @@ class Simulation:
         idx = np.array(wanted)
         results = lidar.scan_many(boxes, poses[idx], self.mount_m[idx], self.lidar_cfg, idx)
         views = {}
-        for vid, (points, labels) in zip(wanted, results):
+        for vid, sweep in zip(wanted, results):
             x, y, yaw = poses[vid]
-            views[vid] = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), points, labels)
+            views[vid] = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), *sweep)
         self._collider_view = views.pop(col)
         ego = self.scenario.ego.vid
         ego_view = views.get(ego)

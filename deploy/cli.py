@@ -10,6 +10,8 @@ import importlib
 import sys
 
 BENCHES = ("lidar", "perception", "scheduler", "channel", "pipeline")
+# command -> module whose ``main(argv) -> int`` runs it
+SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "deploy": "deploy.hosts"}
 
 USAGE = """usage: autocast <command> [args]
 
@@ -18,6 +20,12 @@ commands:
                          and the MCAP recorder as processes (autocast run --help)
   world [flags]          run the world server with lane-following test agents
                          (python -m world_server --help for the flags)
+  sweep [flags]          a matrix of runs from a preset or a file, resumable
+                         (autocast sweep --help)
+  report SWEEP_DIR       the paper's tables and plots from a sweep's results
+  view RUN.mcap          a rerun recording of a run (--save out.rrd for headless use)
+  deploy [flags]         start a run's processes spread over several hosts
+                         (autocast deploy --help)
   bench NAME [--quick]   print benchmark figures; NAME is one of: {benches}
 """.format(benches=", ".join(BENCHES))
 
@@ -34,6 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "world":
         from world_server.__main__ import main as world_main
         return world_main(rest)
+    if cmd in SUBCOMMANDS:
+        return importlib.import_module(SUBCOMMANDS[cmd]).main(rest)
     if cmd == "bench":
         if not rest or rest[0] not in BENCHES:
             print(f"autocast bench: NAME must be one of {', '.join(BENCHES)}", file=sys.stderr)

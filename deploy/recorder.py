@@ -10,6 +10,11 @@ valid envelope is still written, raw, on a schemaless channel of the same topic,
 counted. LiDAR scans (~1.3 MB per vehicle per tick) are kept for the ego only by
 default (``--scans ego|all|none``).
 
+With ``--json-mirror`` every valid message is also written decoded, as JSON with a
+``jsonschema`` schema, on topic ``json/<key>``, so Foxglove and other MCAP tools that
+know nothing of msgpack show it (big point arrays are left out there, see
+``JSON_OMITTED``). ``mirror_file`` adds the same mirror to a finished recording.
+
 The file is always finalized (summary and index written): on SIGINT or SIGTERM, a short
 drain after the world's outcome, or when the hub has been gone for a few seconds.
 """
@@ -18,10 +23,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import inspect
 import io
 import json
 import logging
+import math
 import queue
 import signal
 import subprocess
@@ -33,11 +40,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import zenoh
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, message_class
+from protocol import messages
 from protocol.messages import Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 
@@ -50,6 +61,17 @@ STATS_NAME = "autocast.recorder"
 SCAN_CHOICES = ("ego", "all", "none")
 EGO_VID = 0
 
+JSON_PREFIX = "json/"  # a mirror's topic is JSON_PREFIX + the key
+JSON_ENCODING = "json"
+JSON_SCHEMA_ENCODING = "jsonschema"
+JSON_SCHEMA_PREFIX = "autocast."  # a mirror's schema name is this + the dataclass name
+# Arrays too big for a readable mirror: the mirror carries ``<field>_shape`` instead.
+JSON_OMITTED = frozenset({
+    (messages.Scan, "range_cm"), (messages.Scan, "points"),  # Scan v2 range image; v1 points
+    (messages.AgentReport, "fused_xy"), (messages.EmpUpload, "points_world"),
+    (messages.EmpSegment, "points_world"), (messages.ObjectMap, "visibility"), (messages.ObjectMap, "relevance"),
+})
+
 
 @dataclass(frozen=True, slots=True)
 class RecorderConfig:
@@ -60,6 +82,7 @@ class RecorderConfig:
     compression: str = "zstd"
     drain_s: float = 0.5  # keep recording this long after the outcome
     hub_lost_s: float = 3.0  # finalize when no hub was connected for this long
+    json_mirror: bool = False  # also write every message as JSON on json/<key>
 
 
 @dataclass(frozen=True, slots=True)
@@ -144,22 +167,118 @@ class RecorderStats:
     bytes: int = 0
     malformed: int = 0
     per_topic: dict[str, int] = field(default_factory=dict)
+    json_messages: int = 0
+    json_bytes: int = 0
+    json_failed: int = 0  # a valid envelope whose body did not decode: recorded raw only
 
     def as_metadata(self) -> dict[str, str]:
         return {"messages": str(self.messages), "bytes": str(self.bytes), "malformed": str(self.malformed),
-                "topics": str(len(self.per_topic))}
+                "topics": str(len(self.per_topic)), "json_messages": str(self.json_messages),
+                "json_bytes": str(self.json_bytes), "json_failed": str(self.json_failed)}
+
+
+# ------------------------------------------------------------------ JSON mirror
+
+Converter = typing.Callable[[typing.Any], typing.Any]
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _array_to_json(a: np.ndarray) -> list:
+    if a.dtype == np.float32:  # float32 -> shortest decimals it holds, not 2.140781044769287
+        return np.round(a.astype(np.float64), 6).tolist()
+    return a.tolist()
+
+
+def _plan(hint: typing.Any, owner: type | None = None, name: str = "") -> tuple[str, Converter, dict]:
+    """How one field goes to JSON: its name in the mirror, a converter, its JSON schema."""
+    if hint is np.ndarray:
+        if (owner, name) in JSON_OMITTED:
+            return f"{name}_shape", lambda a: list(a.shape), {
+                "type": "array", "items": {"type": "integer"}, "description": f"shape of {name} (left out)"}
+        return name, _array_to_json, {"type": "array", "description": "numpy array as nested lists"}
+    if hint is bytes:
+        return f"{name}_size_bytes", len, {"type": "integer", "description": f"length of {name} (left out)"}
+    if hint is float:
+        return name, _finite, {"type": ["number", "null"]}
+    if hint is bool:
+        return name, bool, {"type": "boolean"}
+    if hint is int:
+        return name, int, {"type": "integer"}
+    if hint is str:
+        return name, str, {"type": "string"}
+    origin = typing.get_origin(hint)
+    if origin is list:
+        (inner,) = typing.get_args(hint)
+        inner_name, conv, schema = _plan(inner, owner, name)
+        return inner_name, (lambda v: [conv(x) for x in v]), {"type": "array", "items": schema}
+    if origin is dict:
+        return name, (lambda v: v), {"type": "object"}  # free-form (outcome, channel statistics)
+    if dataclasses.is_dataclass(hint):
+        conv, schema = _record_plan(hint)
+        return name, conv, schema
+    if hint is typing.Any:
+        return name, (lambda v: v), {}
+    raise TypeError(f"{owner.__name__ if owner else '?'}.{name}: no JSON mirror for {hint!r}")
+
+
+@functools.cache
+def _record_plan(cls: type) -> tuple[Converter, dict]:
+    hints = typing.get_type_hints(cls)
+    plans = [(f.name, *_plan(hints[f.name], cls, f.name)) for f in dataclasses.fields(cls)]
+
+    def convert(value: typing.Any) -> dict:
+        return {out: conv(getattr(value, name)) for name, out, conv, _ in plans}
+
+    schema = {"type": "object", "title": cls.__name__, "properties": {out: sch for _, out, _, sch in plans},
+              "required": [out for _, out, _, _ in plans]}
+    if cls.__doc__ and not cls.__doc__.startswith(f"{cls.__name__}("):
+        schema["description"] = " ".join(cls.__doc__.split())
+    return convert, schema
+
+
+def json_schema_of(cls: type) -> dict:
+    """The JSON schema of a message type's mirror."""
+    return {"$schema": "http://json-schema.org/draft-07/schema#", **_record_plan(cls)[1],
+            "$comment": f"autocast wire type {cls.TYPE_ID} v{cls.VERSION}, mirrored from msgpack"}
+
+
+def to_json(msg: typing.Any) -> bytes:
+    """A decoded message as its mirror's JSON (non-finite numbers become null)."""
+    obj = _record_plan(type(msg))[0](msg)
+    try:
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+    except ValueError:  # NaN or inf inside a free-form dict
+        return json.dumps(_no_nan(obj), separators=(",", ":"), allow_nan=False).encode()
+
+
+def _no_nan(v: typing.Any) -> typing.Any:
+    if isinstance(v, float):
+        return _finite(v)
+    if isinstance(v, dict):
+        return {k: _no_nan(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_no_nan(x) for x in v]
+    return v
 
 
 class McapLog:
-    """An MCAP writer with a channel per (key, message type) and a schema per type."""
+    """An MCAP writer with a channel per (key, message type) and a schema per type;
+    with ``json_mirror``, also a JSON channel per key (``json/<key>``)."""
 
-    def __init__(self, stream: typing.BinaryIO, metadata: dict[str, str], compression: str = "zstd") -> None:
+    def __init__(self, stream: typing.BinaryIO, metadata: dict[str, str], compression: str = "zstd",
+                 json_mirror: bool = False) -> None:
         kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         self.writer = Writer(stream, compression=kind)
         self.writer.start(profile="", library="autocast-recorder")
         self.writer.add_metadata(METADATA_NAME, metadata)
+        self.json_mirror = json_mirror
         self.schemas: dict[type, int] = {}
+        self.json_schemas: dict[type, int] = {}
         self.channels: dict[tuple[str, type | None], int] = {}
+        self.json_channels: dict[str, int] = {}
         self.stats = RecorderStats()
 
     def write(self, key: str, payload: bytes, log_time_ns: int) -> None:
@@ -175,6 +294,28 @@ class McapLog:
         self.stats.per_topic[key] = seq + 1
         self.stats.messages += 1
         self.stats.bytes += len(payload)
+        if self.json_mirror and env is not None:
+            self._mirror(key, env.cls, payload, log_time_ns, publish_ns, seq)
+
+    def _mirror(self, key: str, cls: type, payload: bytes, log_time_ns: int, publish_ns: int, seq: int) -> None:
+        try:
+            data = to_json(decode(payload, cls))
+        except MalformedMessage as exc:
+            self.stats.json_failed += 1
+            if self.stats.json_failed == 1 or self.stats.json_failed % 100 == 0:
+                log.warning("no JSON mirror #%d on %s: %s", self.stats.json_failed, key, exc)
+            return
+        channel = self.json_channels.get(key)
+        if channel is None:
+            schema = self.json_schemas.get(cls)
+            if schema is None:
+                schema = self.json_schemas[cls] = self.writer.register_schema(
+                    JSON_SCHEMA_PREFIX + cls.__name__, JSON_SCHEMA_ENCODING, json.dumps(json_schema_of(cls)).encode())
+            channel = self.json_channels[key] = self.writer.register_channel(
+                JSON_PREFIX + key, JSON_ENCODING, schema, {"mirror_of": key})
+        self.writer.add_message(channel, log_time=log_time_ns, data=data, publish_time=publish_ns, sequence=seq)
+        self.stats.json_messages += 1
+        self.stats.json_bytes += len(data)
 
     def _channel(self, key: str, cls: type | None) -> int:
         got = self.channels.get((key, cls))
@@ -295,6 +436,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help=f"an entry of the '{METADATA_NAME}' metadata record (scenario, seed, scheme, ...)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     ap.add_argument("--drain-s", type=float, default=0.5, help="keep recording this long after the outcome")
+    ap.add_argument("--json-mirror", action="store_true",
+                    help="also write every message as JSON (jsonschema) on json/<key>, for Foxglove")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -317,7 +460,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s recorder %(levelname)s %(message)s")
     try:
         keys.everything(args.run_id)
-        cfg = RecorderConfig(args.run_id, args.out, args.scans, metadata_from(args), args.compression, args.drain_s)
+        cfg = RecorderConfig(args.run_id, args.out, args.scans, metadata_from(args), args.compression, args.drain_s,
+                             json_mirror=args.json_mirror)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -336,7 +480,7 @@ def record(cfg: RecorderConfig, zargs: ZenohArgs, stop: threading.Event) -> int:
     """Record one run into ``cfg.path`` until ``stop``; the file is finalized whatever ends the run."""
     with session_scope(zargs) as session, open(cfg.path, "wb") as stream:
         recorder = Recorder(cfg, session, stop)
-        out = McapLog(stream, cfg.metadata, cfg.compression)
+        out = McapLog(stream, cfg.metadata, cfg.compression, json_mirror=cfg.json_mirror)
         try:
             recorder.run(out)
         finally:
@@ -345,6 +489,54 @@ def record(cfg: RecorderConfig, zargs: ZenohArgs, stop: threading.Event) -> int:
             log.info("wrote %s: %d messages, %.1f MB, %d topics, %d malformed", cfg.path, s.messages, s.bytes / 1e6,
                      len(s.per_topic), s.malformed)
     return 0
+
+
+def read_messages(stream: typing.BinaryIO, topics: list[str] | None = None,
+                  ) -> typing.Iterator[tuple[Schema | None, Channel, Message]]:
+    """A recording's messages in file order (= arrival order), one chunk in memory at a time.
+
+    A file whose summary cannot be read (the recorder was killed) is read from the start
+    until it ends or breaks; the reader's error then reaches the caller.
+    """
+    try:
+        reader = make_reader(stream)
+        usable = reader.get_summary() is not None
+    except Exception:  # the mcap reader raises several unrelated types for a damaged footer
+        usable = False
+    if not usable:
+        stream.seek(0)
+        reader = NonSeekingReader(stream)
+    yield from reader.iter_messages(topics=topics, log_time_order=False)  # time order would sort it all in memory
+
+
+def read_metadata(stream: typing.BinaryIO) -> dict[str, dict[str, str]]:
+    """The recording's metadata records by name ({} if the file's index cannot be read)."""
+    try:
+        return {m.name: dict(m.metadata) for m in make_reader(stream).iter_metadata()}
+    except Exception:
+        return {}
+
+
+def mirror_file(src: Path, dst: Path, compression: str = "zstd") -> RecorderStats:
+    """Copy a recording with its JSON mirror added (raw channels byte for byte, same times).
+
+    Streams message by message; a mirror already in ``src`` is not copied. A damaged
+    ``src`` is copied up to the damage.
+    """
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        meta = read_metadata(fin)
+        fin.seek(0)
+        out = McapLog(fout, meta.get(METADATA_NAME, {}), compression, json_mirror=True)
+        try:
+            for _, channel, msg in read_messages(fin):
+                if channel.message_encoding == MESSAGE_ENCODING:
+                    out.write(channel.topic, msg.data, msg.log_time)
+        except Exception as exc:  # a damaged file: keep what was read
+            log.warning("%s: stopped reading after %d messages: %s: %s", src, out.stats.messages,
+                        type(exc).__name__, exc)
+        finally:
+            out.finish()
+    return out.stats
 
 
 if __name__ == "__main__":

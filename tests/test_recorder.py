@@ -4,6 +4,8 @@ whatever ends the run (the outcome, SIGINT, SIGTERM, the hub going away)."""
 from __future__ import annotations
 
 import io
+import json
+import math
 import signal
 import time
 
@@ -12,7 +14,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from deploy.recorder import McapLog, peek_envelope, subscriptions
+from deploy.recorder import JSON_PREFIX, McapLog, json_schema_of, peek_envelope, subscriptions, to_json
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Command, Outcome, Pose, Scan, Tick
@@ -78,6 +80,48 @@ def test_payloads_are_written_as_they_arrived_with_a_schema_per_type():
     assert bad == [(None, bad[0][1])] and bad[0][1].publish_time == bad[0][1].log_time
     assert meta["autocast"] == {"scenario": "left_turn", "seed": "3"}
     assert meta["autocast.recorder"]["malformed"] == "1" and meta["autocast.recorder"]["messages"] == str(len(sent))
+
+
+def test_the_json_mirror_sits_beside_the_raw_channels():
+    buf = io.BytesIO()
+    out = McapLog(buf, {}, json_mirror=True)
+    image = np.zeros((18, 4), np.uint16)
+    image[3, 1] = 1234
+    good = [(keys.world_tick(RUN), encode(Tick(0, 0.0, [0, 1], []))),
+            (keys.scan(RUN, 0), encode(Scan(0, 0.0, 0, Pose(1.0, 2.0, 0.5), 3.0, image))),
+            (keys.cmd(RUN, 1), encode(Command(0, 0.0, 1, -2.5, 0.125))),
+            (keys.world_outcome(RUN), encode(Outcome(1, 0.1, {"outcome": "safe", "reaction_time_s": math.nan})))]
+    truncated = encode(Command(1, 0.1, 1, 0.0, 0.0))[:-3]  # a valid envelope, a broken body
+    for i, (key, payload) in enumerate([*good, (keys.cmd(RUN, 1), truncated), (keys.cmd(RUN, 1), b"garbage")]):
+        out.write(key, payload, log_time_ns=1_000 + i)
+    out.finish()
+
+    summary, msgs, meta = read(buf.getvalue())
+    raw = [m.data for topic, _, m in msgs if not topic.startswith(JSON_PREFIX)]
+    assert raw == [p for _, p in good] + [truncated, b"garbage"]  # the raw log is unchanged
+    mirror = {topic[len(JSON_PREFIX):]: (schema, json.loads(m.data)) for topic, schema, m in msgs
+              if topic.startswith(JSON_PREFIX)}
+    assert set(mirror) == {key for key, _ in good}  # neither the broken body nor the garbage is mirrored
+    assert {ch.message_encoding for ch in summary.channels.values()} == {"msgpack", "json"}
+    name, cmd = mirror[keys.cmd(RUN, 1)]
+    (schema,) = [s for s in summary.schemas.values() if s.name == name]
+    assert (schema.name, schema.encoding) == ("autocast.Command", "jsonschema")
+    assert json.loads(schema.data) == json_schema_of(Command)
+    assert cmd == {"tick": 0, "t_sim_s": 0.0, "vid": 1, "accel_mps2": -2.5, "steer_rad": 0.125}
+    scan_doc = mirror[keys.scan(RUN, 0)][1]
+    assert scan_doc["range_cm_shape"] == [18, 4] and "range_cm" not in scan_doc  # the image is left out
+    assert scan_doc["pose"] == {"x_m": 1.0, "y_m": 2.0, "yaw_rad": 0.5}
+    assert mirror[keys.world_outcome(RUN)][1]["result"] == {"outcome": "safe", "reaction_time_s": None}  # NaN
+    stats = meta["autocast.recorder"]
+    assert (stats["malformed"], stats["json_failed"], stats["json_messages"]) == ("1", "1", "4")
+
+
+def test_float32_arrays_are_mirrored_without_float_noise():
+    from protocol.messages import AgentReport
+
+    doc = json.loads(to_json(AgentReport(2, 0.2, 0, np.array([[0.1, 37.805]], np.float32), 5, True)))
+    assert doc == {"tick": 2, "t_sim_s": 0.2, "vid": 0, "fused_xy_shape": [1, 2], "received_points": 5,
+                   "braking": True}
 
 
 class Hub:

@@ -34,7 +34,7 @@ from typing import Any, NoReturn
 import zenoh
 
 from deploy import table
-from deploy.procs import ProcessManager
+from deploy.procs import ProcessManager, ProcSpec
 from protocol import keys
 from protocol.messages import Outcome, Scan
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
@@ -85,9 +85,14 @@ class _Parser(argparse.ArgumentParser):
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    return build_parser().parse_args(argv)
+
+
+def build_parser(prog: str = "autocast run", description: str | None = __doc__) -> argparse.ArgumentParser:
+    """The run's flags; ``autocast deploy`` adds its own to the same parser."""
     from vehicle_agent.__main__ import SCHEMES
 
-    ap = _Parser(prog="autocast run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     sc = ap.add_argument_group("scenario (python -m world_server --help)")
     sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn)")
     sc.add_argument("--vehicles", default="10", help="connected vehicles in range, ego included (default 10)")
@@ -107,7 +112,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--timeout-s", default="900", help="wall-clock limit for the whole run (default 900)")
     ap.add_argument("--no-warm-up", action="store_true", help="skip warming the numba caches")
     ap.add_argument("--log-level", default="INFO", help="the launcher's, world's, proxy's and recorder's")
-    return ap.parse_args(argv)
+    return ap
 
 
 def _number(field: str, text: str, kind: type) -> Any:
@@ -263,7 +268,10 @@ def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManag
 class Launcher:
     """Starts the table's processes for one run and sees them through to the outcome."""
 
-    def __init__(self, opts: LaunchOptions, session: zenoh.Session, stop: threading.Event) -> None:
+    def __init__(self, opts: LaunchOptions, session: zenoh.Session, stop: threading.Event,
+                 procs: ProcessManager | None = None, specs: list[ProcSpec] | None = None) -> None:
+        """``procs`` and ``specs`` default to local processes and ``table.processes``;
+        ``autocast deploy`` passes its own (the same rows, started on other hosts)."""
         self.opts = opts
         self.cfg = opts.run
         self.session = session
@@ -272,7 +280,8 @@ class Launcher:
         self.outcome_after_stop = False  # judged only because Ctrl-C stopped the world
         self._got_outcome = threading.Event()
         self._drops = DropCounter()
-        self.procs = ProcessManager(self.cfg.log_dir)
+        self.procs = procs if procs is not None else ProcessManager(self.cfg.log_dir)
+        self.specs = specs
 
     def _on_outcome(self, key: str, msg: Outcome) -> None:
         if self.outcome is None:
@@ -282,7 +291,7 @@ class Launcher:
 
     def run(self) -> RunResult:
         cfg = self.cfg
-        specs = table.processes(cfg)
+        specs = self.specs if self.specs is not None else table.processes(cfg)
         sub = self.session.declare_subscriber(keys.world_outcome(cfg.run_id),
                                               typed_handler(Outcome, self._on_outcome, self._drops))
         try:

@@ -91,3 +91,42 @@ def test_rect_distance_by_hand():
     assert rect_distance(a, box_corners(1.0, 0.5, 0.3, 4.0, 2.0)) == 0.0
     # a plus shape: no corner inside the other, still overlapping
     assert rect_distance(box_corners(0, 0, 0, 10.0, 1.0), box_corners(0, 0, np.pi / 2, 10.0, 1.0)) == 0.0
+
+
+EXAMPLE = "world_server.example_scenarios:left_turn_from_east"
+
+
+def test_a_scenario_by_import_path_is_left_turn_turned_a_quarter():
+    """The example builder rotates left_turn by +90 degrees about the intersection centre:
+    every actor's route is left_turn's rotated, so the geometry (and the delta) carry over."""
+    ref = build(ScenarioParams(scenario="left_turn", vehicles=5, delta_s=1.0))
+    ex = build(ScenarioParams(scenario=EXAMPLE, vehicles=5, delta_s=1.0))
+    rot = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg: south arm -> east arm
+    for role in ("ego", "occluder", "collider"):
+        a, b = ref._role(role), ex._role(role)
+        assert (a.vid, a.connected) == (b.vid, b.connected)
+        np.testing.assert_allclose(a.route @ rot.T, b.route, atol=1e-9)
+    np.testing.assert_allclose(ref.conflict_xy @ rot.T, ex.conflict_xy, atol=1e-9)
+    assert ex.arrival_s(ex.collider) - ex.arrival_s(ex.ego) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_unknown_or_broken_scenarios_name_the_field():
+    with pytest.raises(ScenarioError, match=r"^scenario: 'nope' is not one of"):
+        ScenarioParams(scenario="nope")
+    with pytest.raises(ScenarioError, match=r"^scenario: cannot load 'no_such_pkg.x:f'"):
+        ScenarioParams(scenario="no_such_pkg.x:f")
+    with pytest.raises(ScenarioError, match=r"^scenario: cannot load 'world_server.example_scenarios:nope'"):
+        ScenarioParams(scenario="world_server.example_scenarios:nope")
+
+
+def test_a_builder_that_misplaces_a_role_is_refused(monkeypatch):
+    import world_server.example_scenarios as ex
+
+    def ego_as_vid_3(p):
+        sc = ex.left_turn_from_east(p)
+        sc.ego.vid = 3
+        return sc
+
+    monkeypatch.setattr(ex, "bad", ego_as_vid_3, raising=False)
+    with pytest.raises(ScenarioError, match=r"must place the ego as vid 0"):
+        build(ScenarioParams(scenario="world_server.example_scenarios:bad", vehicles=5))

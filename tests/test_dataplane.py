@@ -183,3 +183,22 @@ def test_received_points_land_in_the_receivers_grid():
     assert fused.state[rows, cols].tolist() == [ABOVE] * len(rows)
     assert centers[:, 0].min() == pytest.approx(7.75 + 1.0, abs=0.5)  # near face x = 7.75, plus 1 m
     assert np.abs(centers[:, 1]).max() <= 0.9 + 0.5
+
+
+def test_batched_trajectory_sampling_equals_one_at_a_time():
+    """relevance samples every receiver's trajectory in one numba pass; it must agree with
+    the numpy reference (np.interp, holding both ends) on random trajectories."""
+    from vehicle_agent.spatial import _sample_all, sample_trajectory
+
+    rng = np.random.default_rng(0)
+    trajs = []
+    for _ in range(150):
+        n = int(rng.integers(1, 8))
+        trajs.append(np.column_stack([rng.uniform(-50, 50, (n, 2)), np.sort(rng.uniform(0, 5, n))]))
+    times = np.arange(0.0, 6.0, 0.1) - 0.3  # before the first and after the last waypoint too
+    starts = np.concatenate([[0], np.cumsum([len(w) for w in trajs])])
+    pos, head = _sample_all(np.concatenate(trajs), starts, times)
+    for j, w in enumerate(trajs):
+        ref_pos, ref_head = sample_trajectory(w, times)
+        np.testing.assert_allclose(pos[j], ref_pos, atol=1e-9)
+        np.testing.assert_allclose(head[j], ref_head, atol=1e-12)

@@ -204,6 +204,36 @@ def sample_trajectory(waypoints: np.ndarray, times: np.ndarray) -> tuple[np.ndar
     return np.stack([x, y], axis=1), heading
 
 
+@njit(cache=True)
+def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sample_trajectory`` of every trajectory at once; trajectory j is
+    ``waypoints[starts[j]:starts[j + 1]]`` (times ascending, at least one waypoint)."""
+    J, T = starts.shape[0] - 1, times.shape[0]
+    pos = np.empty((J, T, 2))
+    head = np.zeros((J, T))
+    for j in range(J):
+        a, b = starts[j], starts[j + 1]
+        n = b - a
+        seg = 0
+        for i in range(T):
+            t = times[i]
+            while seg < n - 1 and waypoints[a + seg + 1, 2] <= t:  # last waypoint at or before t
+                seg += 1
+            if n == 1 or t <= waypoints[a, 2]:
+                pos[j, i, 0], pos[j, i, 1] = waypoints[a, 0], waypoints[a, 1]
+            elif seg >= n - 1:
+                pos[j, i, 0], pos[j, i, 1] = waypoints[b - 1, 0], waypoints[b - 1, 1]
+            else:
+                p, q = a + seg, a + seg + 1
+                w = (t - waypoints[p, 2]) / (waypoints[q, 2] - waypoints[p, 2])
+                pos[j, i, 0] = waypoints[p, 0] + w * (waypoints[q, 0] - waypoints[p, 0])
+                pos[j, i, 1] = waypoints[p, 1] + w * (waypoints[q, 1] - waypoints[p, 1])
+            if n >= 2:
+                p = a + min(seg, n - 2)
+                head[j, i] = np.arctan2(waypoints[p + 1, 1] - waypoints[p, 1], waypoints[p + 1, 0] - waypoints[p, 0])
+    return pos, head
+
+
 def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
               obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
               step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None) -> np.ndarray:
@@ -217,10 +247,9 @@ def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.nda
     if J == 0 or K == 0:
         return np.zeros((J, K), dtype=np.float32)
     times = t_now_s + np.arange(0.0, horizon_s + 1e-9, step_s)
-    pos_j = np.empty((J, len(times), 2))
-    head_j = np.empty((J, len(times)))
-    for j, wp in enumerate(trajectories):
-        pos_j[j], head_j[j] = sample_trajectory(wp, times)
+    starts = np.zeros(J + 1, dtype=np.int64)
+    starts[1:] = np.cumsum([len(wp) for wp in trajectories])
+    pos_j, head_j = _sample_all(np.concatenate(trajectories).astype(np.float64), starts, times)
     if obj_heading is None:
         speed = np.hypot(obj_vel[:, 0], obj_vel[:, 1])
         obj_heading = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)

@@ -1,0 +1,593 @@
+"""``autocast deploy``: one run's processes spread over several hosts.
+
+    autocast deploy --hosts hosts.toml --scenario left_turn --vehicles 10 --scheme autocast --seed 0
+
+The hosts file (``deploy/hosts.example.toml``, ``docs/multihost.md``) names each host:
+its address, the command prefix that runs one shell command line there (``ssh
+user@host``, ``ip netns exec NAME sh -c``; default ``sh -c``, this machine) and which
+of the run's processes it takes (``run = ["world", "recorder", "proxy"]``,
+``agents = 3``, ``agents = [0, 4]`` or ``agents = "rest"``).
+
+The run is the same table of processes as ``autocast run`` (``deploy.table``). Each
+host gets one Zenoh router (``deploy.router``) connected to the routers of the hosts
+listed before it; every process connects to its own host's router. The launcher is a
+client of the routers: it checks that they form a full mesh, then runs the same
+``Launcher`` as ``autocast run`` (recorder first, the world's outcome, staged stop),
+with every process started and stopped through its host's prefix (``deploy.remote``),
+and prints the outcome as ``autocast run`` does. Same flags and exit codes as
+``autocast run``, plus ``--hosts`` and ``--dry-run``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from deploy import run, table
+from deploy.procs import ProcessManager, ProcSpec
+from deploy.remote import PID_LINE
+from protocol.session import ZenohArgs, session_scope
+
+log = logging.getLogger("deploy.hosts")
+
+REPO = Path(__file__).resolve().parents[1]
+LOCAL_PREFIX = ("sh", "-c")  # this machine
+DEFAULT_PORT = 7447
+ROLES = (table.WORLD, table.PROXY, table.RECORDER)
+REST = "rest"  # agents = "rest": every connected vehicle no other host takes
+MESH_TIMEOUT_S = 60.0  # routers retry their links; a firewalled port shows up here
+REMOTE_PID_WAIT_S = 5.0  # a process prints its pid line within this after it starts
+PREFIX_TIMEOUT_S = 20.0  # one kill through a prefix (an ssh connection)
+WARM_TIMEOUT_S = 900.0
+_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+# ---------------------------------------------------------------------------- the hosts file
+
+
+@dataclass(frozen=True, slots=True)
+class Host:
+    """One host of a run: where it is, how to run a command there, what it runs."""
+
+    name: str
+    address: str  # how the other hosts (and this host's processes) reach its router
+    prefix: tuple[str, ...] = LOCAL_PREFIX  # runs its last argument, a shell command line, on the host
+    port: int = DEFAULT_PORT  # the router's TCP port
+    listen: str = ""  # the address the router binds; default ``address`` (``0.0.0.0`` behind NAT)
+    workdir: str = str(REPO)  # the repository's checkout on the host
+    python: str = sys.executable  # a Python with the project installed, on the host
+    env: tuple[tuple[str, str], ...] = ()
+    warm_up: bool = True  # warm the host's numba caches before the run
+    run: tuple[str, ...] = ()  # of world, proxy, recorder
+    agents: int | tuple[int, ...] | str = 0  # a count, a list of vehicle ids, or "rest"
+
+    @property
+    def endpoint(self) -> str:
+        return _endpoint(self.address, self.port)
+
+    @property
+    def listen_endpoint(self) -> str:
+        return _endpoint(self.listen or self.address, self.port)
+
+    @property
+    def router(self) -> str:
+        return f"router-{self.name}"
+
+
+def _endpoint(address: str, port: int) -> str:
+    return f"tcp/[{address}]:{port}" if ":" in address else f"tcp/{address}:{port}"
+
+
+@dataclass(frozen=True, slots=True)
+class HostsFile:
+    hosts: tuple[Host, ...]
+    launcher_connect: tuple[str, ...] = ()  # the launcher's routers; default: every host's
+
+    def router_endpoints(self) -> tuple[str, ...]:
+        return tuple(h.endpoint for h in self.hosts)
+
+
+_HOST_ONLY = ("name", "address", "run", "agents")
+_SHARED = tuple(f.name for f in dataclasses.fields(Host) if f.name not in _HOST_ONLY)
+
+
+def load_hosts(path: str | Path) -> HostsFile:
+    """Read and check a hosts file; ``InputError`` names the field that is wrong."""
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as exc:
+        raise run.InputError(f"hosts: cannot read {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise run.InputError(f"hosts: {path} is not valid TOML: {exc}") from None
+    return parse_hosts(data)
+
+
+def parse_hosts(data: dict[str, Any]) -> HostsFile:
+    _known("hosts file", data, ("defaults", "launcher", "host"))
+    defaults = data.get("defaults", {})
+    _known("defaults", defaults, _SHARED)
+    launcher = data.get("launcher", {})
+    _known("launcher", launcher, ("connect",))
+    entries = data.get("host", [])
+    if not isinstance(entries, list) or not entries:
+        raise run.InputError("hosts: no [[host]] entries")
+    hosts = tuple(_host(i, {**defaults, **entry}) for i, entry in enumerate(entries))
+    names = [h.name for h in hosts]
+    for name in names:
+        if names.count(name) > 1:
+            raise run.InputError(f"hosts: host name {name!r} is used twice")
+    endpoints = [h.endpoint for h in hosts]
+    for ep in endpoints:
+        if endpoints.count(ep) > 1:
+            raise run.InputError(f"hosts: two hosts' routers at {ep} (give them different addresses or ports)")
+    connect = launcher.get("connect", [])
+    if isinstance(connect, str):
+        connect = [connect]
+    if not all(isinstance(c, str) and c for c in connect):
+        raise run.InputError("launcher.connect: a list of Zenoh endpoints, e.g. [\"tcp/10.0.0.1:7447\"]")
+    return HostsFile(hosts, tuple(connect))
+
+
+def _known(where: str, table_: Any, fields: Iterable[str]) -> None:
+    if not isinstance(table_, dict):
+        raise run.InputError(f"hosts: {where}: a table, not {type(table_).__name__}")
+    fields = tuple(fields)
+    for key in table_:
+        if key not in fields:
+            raise run.InputError(f"hosts: {where}: unknown field {key!r} (known: {', '.join(fields)})")
+
+
+def _host(i: int, entry: dict[str, Any]) -> Host:
+    if not isinstance(entry, dict):
+        raise run.InputError(f"hosts: host #{i + 1}: a table")
+    name = entry.get("name")
+    where = f"host {name!r}" if isinstance(name, str) else f"host #{i + 1}"
+    _known(where, entry, (*_HOST_ONLY, *_SHARED))
+
+    def bad(field: str, want: str) -> run.InputError:
+        return run.InputError(f"hosts: {where}: {field}: {entry.get(field)!r} is not {want}")
+
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise bad("name", "a name of letters, digits, '-' and '_'")
+    for field in ("address", "listen", "workdir", "python"):
+        if field in entry and not (isinstance(entry[field], str) and (entry[field] or field == "listen")):
+            raise bad(field, "a non-empty string")
+    if "address" not in entry:
+        raise run.InputError(f"hosts: {where}: address: missing")
+    port = entry.get("port", DEFAULT_PORT)
+    if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
+        raise bad("port", "a TCP port (1..65535)")
+    prefix = entry.get("prefix", "")
+    if isinstance(prefix, str):
+        prefix = shlex.split(prefix)
+    if not isinstance(prefix, list) or not all(isinstance(p, str) for p in prefix):
+        raise bad("prefix", "a command (string or list of strings)")
+    env = entry.get("env", {})
+    if not isinstance(env, dict) or not all(isinstance(v, str) and _NAME.match(k) for k, v in env.items()):
+        raise bad("env", "a table of NAME = \"value\"")
+    warm_up = entry.get("warm_up", True)
+    if not isinstance(warm_up, bool):
+        raise bad("warm_up", "true or false")
+    roles = entry.get("run", [])
+    if isinstance(roles, str):
+        roles = [roles]
+    if not isinstance(roles, list) or not all(r in ROLES for r in roles):
+        raise bad("run", f"a list of {', '.join(ROLES)}")
+    agents = entry.get("agents", 0)
+    if isinstance(agents, list):
+        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in agents):
+            raise bad("agents", "a list of vehicle ids")
+        agents = tuple(agents)
+    elif not (agents == REST or (isinstance(agents, int) and not isinstance(agents, bool) and agents >= 0)):
+        raise bad("agents", f"a count, a list of vehicle ids or {REST!r}")
+    return Host(name=name, address=entry["address"], prefix=tuple(prefix) or LOCAL_PREFIX, port=port,
+                listen=entry.get("listen", ""), workdir=entry.get("workdir", str(REPO)),
+                python=entry.get("python", sys.executable), env=tuple(sorted(env.items())), warm_up=warm_up,
+                run=tuple(roles), agents=agents)
+
+
+# ---------------------------------------------------------------------------- placement
+
+
+def place(cfg: table.RunConfig, hf: HostsFile, hub_of: Callable[[Host], str] = lambda h: h.endpoint
+          ) -> list[tuple[ProcSpec, Host]]:
+    """The run's table of processes, each on its host and connected to that host's router
+    (``hub_of(host)``: its address by default, the router's service name under compose)."""
+    host_of: dict[str, Host] = {}
+    for role in ROLES:
+        holders = [h for h in hf.hosts if role in h.run]
+        if len(holders) > 1:
+            raise run.InputError(f"hosts: {role}: on {', '.join(h.name for h in holders)}; exactly one host runs it")
+        if holders:
+            host_of[role] = holders[0]
+        elif role != table.PROXY or table.needs_proxy(cfg.scheme):
+            raise run.InputError(f"hosts: {role}: no host runs it (add it to one host's run = [...])")
+    for vid, host in assign_agents(table.connected_vids(cfg.params), hf.hosts).items():
+        host_of[table.agent_name(vid)] = host
+    rows = {h.name: {s.name: s for s in table.processes(replace(cfg, hub=hub_of(h)))} for h in hf.hosts}
+    return [(rows[host_of[spec.name].name][spec.name], host_of[spec.name]) for spec in table.processes(cfg)]
+
+
+def assign_agents(vids: Sequence[int], hosts: Sequence[Host]) -> dict[int, Host]:
+    """Vehicle id -> host: lists first, then counts in host order, then "rest"."""
+    out: dict[int, Host] = {}
+    for h in hosts:
+        if isinstance(h.agents, tuple):
+            for vid in h.agents:
+                if vid not in vids:
+                    raise run.InputError(f"hosts: host {h.name!r}: agents: vehicle {vid} is not a connected "
+                                         f"vehicle of this run ({', '.join(map(str, vids))})")
+                if vid in out:
+                    raise run.InputError(f"hosts: agents: vehicle {vid} is on {out[vid].name} and {h.name}")
+                out[vid] = h
+    free = [v for v in vids if v not in out]
+    for h in hosts:
+        if isinstance(h.agents, int):
+            if h.agents > len(free):
+                raise run.InputError(f"hosts: host {h.name!r}: agents: {h.agents} asked, {len(free)} left "
+                                     f"of {len(vids)} connected vehicles")
+            out.update({v: h for v in free[:h.agents]})
+            free = free[h.agents:]
+    rest = [h for h in hosts if h.agents == REST]
+    if len(rest) > 1:
+        raise run.InputError(f"hosts: agents = {REST!r} on {', '.join(h.name for h in rest)}; one host at most")
+    if rest:
+        out.update({v: rest[0] for v in free})
+        free = []
+    if free:
+        raise run.InputError(f"hosts: agents: vehicles {', '.join(map(str, free))} are on no host "
+                             f"(give one host agents = {REST!r})")
+    return out
+
+
+def router_spec(host: Host, hf: HostsFile) -> ProcSpec:
+    """The host's router connects to the routers of the hosts listed before it: one link per pair."""
+    before = hf.hosts[:[h.name for h in hf.hosts].index(host.name)]
+    args = ["--name", host.name, "--listen", host.listen_endpoint]
+    for other in before:
+        args += ["--connect", other.endpoint]
+    return ProcSpec(host.router, "deploy.router", tuple(args), critical=True)
+
+
+# ---------------------------------------------------------------------------- commands on a host
+
+
+def shell_line(host: Host, module: str, args: Sequence[str], action: str = "exec") -> str:
+    """``cd WORKDIR && exec env ... PYTHON -m deploy.remote exec MODULE ARGS`` for the host's shell."""
+    env = " ".join(shlex.quote(f"{k}={v}") for k, v in (("PYTHONUNBUFFERED", "1"), *host.env))
+    words = [host.python, "-m", "deploy.remote", action, *([module] if module else []), *args]
+    return f"cd {shlex.quote(host.workdir)} && exec env {env} {shlex.join(words)}"
+
+
+def on_host(host: Host, line: str) -> list[str]:
+    return [*host.prefix, line]
+
+
+def command(host: Host, spec: ProcSpec) -> list[str]:
+    return on_host(host, shell_line(host, spec.module, spec.args))
+
+
+class HostProcessManager(ProcessManager):
+    """``ProcessManager`` for processes that run through a host's command prefix.
+
+    The local child is the prefix (an ssh client, ``ip netns exec``, a shell); its
+    stdout, the remote process's, goes to ``logs/<name>.log``. Signals go to the remote
+    process group through the same prefix (``kill -s SIG -- -PID``), so stopping works
+    whether or not the prefix forwards signals.
+    """
+
+    def __init__(self, log_dir: Path, host_of: dict[str, Host]) -> None:
+        super().__init__(log_dir)
+        self.log_dir: Path = log_dir
+        self.host_of = host_of
+        self._remote_pids: dict[str, int] = {}
+
+    def start(self, spec: ProcSpec) -> subprocess.Popen:
+        if spec.name in self.procs:
+            raise ValueError(f"process {spec.name!r} started twice")
+        argv = command(self.host_of[spec.name], spec)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.log_dir / f"{spec.name}.log", "wb") as out:
+            proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    start_new_session=True)
+        self.procs[spec.name] = (spec, proc)
+        log.debug("started %s on %s: %s", spec.name, self.host_of[spec.name].name, shlex.join(argv))
+        return proc
+
+    def remote_pid(self, name: str, wait_s: float = REMOTE_PID_WAIT_S) -> int | None:
+        """The pid (and process group) on the host, from the log's first line; None if it never printed it."""
+        if name in self._remote_pids:
+            return self._remote_pids[name]
+        path, proc = self.log_dir / f"{name}.log", self.procs[name][1]
+        deadline = time.monotonic() + wait_s
+        while True:
+            with open(path, "rb") as f:
+                first = f.readline().decode(errors="replace")
+            if first.startswith(PID_LINE) and first.endswith("\n"):
+                self._remote_pids[name] = int(first.split()[2])
+                return self._remote_pids[name]
+            if proc.poll() is not None or time.monotonic() > deadline:
+                return None
+            time.sleep(0.05)
+
+    def pids(self) -> dict[str, int]:
+        return {name: self.remote_pid(name) or proc.pid for name, (_, proc) in self.procs.items()}
+
+    def signal(self, names: Iterable[str], sig: str) -> None:
+        """Send ``sig`` (INT, KILL) to each process's group on its host, one prefix call per host."""
+        by_host: dict[str, tuple[Host, list[int]]] = {}
+        for name in names:
+            pid = self.remote_pid(name)
+            if pid is None:  # it never got to print its pid: the prefix itself is all there is
+                _killpg(self.procs[name][1], getattr(signal, f"SIG{sig}"))
+                continue
+            host = self.host_of[name]
+            by_host.setdefault(host.name, (host, []))[1].append(pid)
+        calls = [subprocess.Popen(on_host(host, f"kill -s {sig} -- " + " ".join(f"-{p}" for p in pids)),
+                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                  start_new_session=True) for host, pids in by_host.values()]
+        for call in calls:
+            try:
+                call.wait(timeout=PREFIX_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                log.warning("a kill through %s hung; giving up on it", shlex.join(call.args[:-1]))
+                call.kill()
+                call.wait()
+
+    def stop(self, names: Iterable[str], grace_s: float = 3.0) -> None:
+        """SIGINT on the hosts, wait up to ``grace_s``, SIGKILL what is left; then the prefixes."""
+        running = [n for n in names if n in self.procs and self.procs[n][1].poll() is None]
+        if not running:
+            return
+        self.signal(running, "INT")
+        left = self.wait(running, grace_s)
+        if left:
+            log.warning("%s ignored SIGINT for %.1f s; killing", " ".join(left), grace_s)
+            self.signal(left, "KILL")
+            left = self.wait(left, grace_s)
+        for name in left:  # the remote process is gone or unreachable: end the local prefix
+            _killpg(self.procs[name][1], signal.SIGKILL)
+        for name in running:
+            self.procs[name][1].wait()
+
+
+def _killpg(proc: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+def warm_hosts(hosts: Iterable[Host], params, log_dir: Path, stop: threading.Event) -> None:
+    """Warm the numba caches on every host that asks for it, all at once; a failure costs only time."""
+    line = json.dumps(dataclasses.asdict(params))
+    started = []
+    for host in hosts:
+        with open(log_dir / f"warm-{host.name}.log", "wb") as out:
+            started.append((host, subprocess.Popen(on_host(host, shell_line(host, "", [line], action="warm")),
+                                                   stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                                   start_new_session=True)))
+    if not started:
+        return
+    t0 = time.monotonic()
+    deadline = t0 + WARM_TIMEOUT_S
+    for host, proc in started:
+        while proc.poll() is None and not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if proc.poll() is None:
+            _killpg(proc, signal.SIGKILL)
+            proc.wait()
+        if proc.returncode:
+            log.warning("warming %s failed (code %s, see logs/warm-%s.log); its agents compile their own",
+                        host.name, proc.returncode, host.name)
+    log.info("numba caches warm on %s in %.1f s", " ".join(h.name for h, _ in started), time.monotonic() - t0)
+
+
+def routers_seen(session: zenoh.Session) -> list[dict]:
+    """Every router's admin record reachable from the launcher (locators, linked sessions)."""
+    out = []
+    for reply in session.get("@/*/router", timeout=2.0):
+        if reply.ok is not None:
+            try:
+                out.append(json.loads(reply.ok.payload.to_string()))
+            except ValueError:
+                pass
+    return out
+
+
+def wait_for_mesh(session: zenoh.Session, hf: HostsFile, timeout_s: float, stop: threading.Event) -> str | None:
+    """None once every router answers and is linked to every other; else why not."""
+    n = len(hf.hosts)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        seen = routers_seen(session)
+        links = {r.get("zid"): sum(s.get("whatami") == "router" for s in r.get("sessions", [])) for r in seen}
+        if len(links) == n and all(k >= n - 1 for k in links.values()):
+            return None
+        if stop.is_set():
+            return "interrupted"
+        if time.monotonic() > deadline:
+            ports = sorted({h.port for h in hf.hosts})
+            return (f"the hosts' routers are not linked after {timeout_s:.0f} s: {len(links)} of {n} answered, "
+                    f"with {sorted(links.values())} router links (want {n - 1} each); check that TCP port(s) "
+                    f"{', '.join(map(str, ports))} are open between the hosts (logs/router-*.log)")
+        time.sleep(0.2)
+
+
+def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, Host]],
+           stop: threading.Event) -> run.RunResult:
+    """One run over the hosts: routers, mesh check, the launcher's run, then the routers stop."""
+    cfg = opts.run
+    cfg.log_dir.mkdir(parents=True, exist_ok=False)
+    if opts.warm_up:
+        run.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
+        warm_hosts([h for h in hf.hosts if h.warm_up], cfg.params, cfg.log_dir, stop)
+    host_of = {spec.name: host for spec, host in placed} | {h.router: h for h in hf.hosts}
+    procs = HostProcessManager(cfg.log_dir, host_of)
+    write_placement(cfg.run_dir / "hosts.json", hf, placed)
+    try:
+        for host in hf.hosts:
+            procs.start(router_spec(host, hf))
+        connect = hf.launcher_connect or hf.router_endpoints()
+        with session_scope(ZenohArgs(connect=connect), wait_s=MESH_TIMEOUT_S) as session:
+            t0 = time.monotonic()
+            failure = wait_for_mesh(session, hf, MESH_TIMEOUT_S, stop)
+            if failure == "interrupted":
+                return run.RunResult(run.EXIT_INTERRUPTED, None, "interrupted before an outcome")
+            if failure:
+                return run.RunResult(run.EXIT_FAILED, None, failure)
+            log.info("%d routers linked in %.1f s: %s", len(hf.hosts), time.monotonic() - t0,
+                     " ".join(f"{h.name}={h.endpoint}" for h in hf.hosts))
+            res = run.Launcher(opts, session, stop, procs, [spec for spec, _ in placed]).run()
+    except ConnectionError as exc:
+        return run.RunResult(run.EXIT_FAILED, None, f"the launcher reached no router: {exc}")
+    finally:
+        procs.stop_all(run.GRACE_S)  # the routers, and anything a failed start left behind
+    return with_placement(res, cfg, placed)
+
+
+def with_placement(res: run.RunResult, cfg: table.RunConfig, placed: list[tuple[ProcSpec, Host]]) -> run.RunResult:
+    """The outcome record plus where each process ran; the MCAP named on the recorder's host."""
+    if res.result is None:
+        return res
+    result = dict(res.result, hosts={spec.name: host.name for spec, host in placed})
+    recorder = next(host for spec, host in placed if spec.name == table.RECORDER)
+    if result.get("mcap") is None:
+        path = cfg.mcap_path if cfg.mcap_path.is_absolute() else Path(recorder.workdir) / cfg.mcap_path
+        result["mcap"] = f"{recorder.name}:{path}"
+    return replace(res, result=result)
+
+
+def write_placement(path: Path, hf: HostsFile, placed: list[tuple[ProcSpec, Host]]) -> None:
+    record = {h.name: {"address": h.address, "router": h.endpoint, "prefix": shlex.join(h.prefix),
+                       "processes": [s.name for s, host in placed if host is h]} for h in hf.hosts}
+    path.write_text(json.dumps(record, indent=1) + "\n")
+
+
+def plan(hf: HostsFile, placed: list[tuple[ProcSpec, Host]]) -> str:
+    """What ``--dry-run`` prints: each host's router and processes, then every command."""
+    lines = []
+    for h in hf.hosts:
+        links = ", ".join(o.endpoint for o in hf.hosts[:hf.hosts.index(h)]) or "-"
+        lines.append(f"host {h.name}: router {h.listen_endpoint} (connects to {links}); "
+                     f"runs {' '.join(s.name for s, host in placed if host is h) or 'nothing else'}")
+    lines.append(f"launcher connects to {', '.join(hf.launcher_connect or hf.router_endpoints())}")
+    lines.append("commands:")
+    for h in hf.hosts:
+        lines.append(f"  {h.router}: {shlex.join(command(h, router_spec(h, hf)))}")
+    for spec, h in placed:
+        lines.append(f"  {spec.name}: {shlex.join(command(h, spec))}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- docker compose
+
+IMAGE = "autocast-py"
+
+
+def compose(cfg: table.RunConfig, hf: HostsFile) -> dict[str, Any]:
+    """A compose project for this run and hosts: one service per process, a router per host.
+
+    Processes reach their host's router by service name; routers reach each other by
+    the hosts' addresses, on published ports. Each host starts its own services.
+    """
+    build = {"context": "..", "dockerfile": "deploy/Dockerfile"}
+    services: dict[str, Any] = {}
+    for h in hf.hosts:
+        spec = router_spec(replace(h, listen="0.0.0.0"), hf)
+        services[h.router] = {"image": IMAGE, "build": build, "command": ["python", "-m", spec.module, *spec.args],
+                              "ports": [f"{h.port}:{h.port}"], "labels": {"autocast.host": h.name}}
+    for spec, h in place(cfg, hf, hub_of=lambda h: f"tcp/{h.router}:{h.port}"):
+        service = {"image": IMAGE, "build": build, "command": ["python", "-m", spec.module, *spec.args],
+                   "depends_on": [h.router], "labels": {"autocast.host": h.name}}
+        if spec.name == table.RECORDER:
+            service["volumes"] = ["../runs:/app/runs"]  # the MCAP lands in the checkout's runs/
+        services[spec.name] = service
+    return {"name": f"autocast-{cfg.run_id.lower()}", "services": services}
+
+
+def compose_text(cfg: table.RunConfig, hf: HostsFile, how: str) -> str:
+    project = compose(cfg, hf)
+    by_host = {h.name: [n for n, s in project["services"].items() if s["labels"]["autocast.host"] == h.name]
+               for h in hf.hosts}
+    world_host = project["services"][table.WORLD]["labels"]["autocast.host"]
+    head = [f"# Generated by: {how}", "# One service per process of the run, a Zenoh router per host (explicit "
+            "endpoints, no multicast).", "# Build the image on each host, then start that host's services:"]
+    for name, services in by_host.items():
+        extra = " --exit-code-from world" if name == world_host else ""
+        head.append(f"#   {name}: docker compose -f deploy/docker-compose.yml up --build{extra} {' '.join(services)}")
+    head.append("# The world prints the judged outcome (docker compose logs world); agents and the proxy exit on it.")
+    return "\n".join(head) + "\n" + _yaml(project) + "\n"
+
+
+def _yaml(obj: dict[str, Any], depth: int = 0) -> str:
+    """Block mappings, flow lists and JSON-quoted scalars: valid YAML without a YAML library."""
+    pad, lines = "  " * depth, []
+    for key, value in obj.items():
+        if isinstance(value, dict):
+            lines += [f"{pad}{key}:", _yaml(value, depth + 1)]
+        elif isinstance(value, list):
+            lines.append(f"{pad}{key}: [{', '.join(json.dumps(v) for v in value)}]")
+        else:
+            lines.append(f"{pad}{key}: {json.dumps(value)}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = run.build_parser(prog="autocast deploy", description=__doc__)
+    ap.add_argument("--hosts", required=True, metavar="FILE", help="the hosts file (deploy/hosts.example.toml)")
+    ap.add_argument("--dry-run", action="store_true", help="print where each process runs and every command; "
+                    "start nothing")
+    ap.add_argument("--compose", metavar="FILE", help="write a docker compose file for this run and hosts "
+                    "(one service per process, a router per host); start nothing")
+    args = ap.parse_args(argv)
+    level = args.log_level.upper()
+    logging.basicConfig(level=level if level in logging.getLevelNamesMapping() else "INFO",
+                        format="autocast deploy: %(message)s")
+    try:
+        opts = run.options_from(args, hub="")
+        hf = load_hosts(args.hosts)
+        placed = place(opts.run, hf)
+    except run.InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return run.EXIT_BAD_INPUT
+    if args.dry_run:
+        print(plan(hf, placed))
+        return 0
+    if args.compose:
+        how = shlex.join(["autocast", "deploy", *(sys.argv[2:] if argv is None else argv)])
+        Path(args.compose).write_text(compose_text(opts.run, hf, how))
+        print(f"wrote {args.compose}")
+        return 0
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    t0 = time.monotonic()
+    cfg = opts.run
+    log.info("run %s: %s, %d vehicles, scheme %s, over %d hosts (%s) -> %s", cfg.run_id, cfg.params.scenario,
+             cfg.params.vehicles, cfg.scheme, len(hf.hosts), " ".join(h.name for h in hf.hosts), cfg.run_dir)
+    res = deploy(opts, hf, placed, stop)
+    return run.report(res, cfg, args.json, time.monotonic() - t0)

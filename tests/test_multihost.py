@@ -1,0 +1,263 @@
+"""Multi-host deployment: the hosts file, placement, the compose file, stopping through a
+prefix, and one real run over network namespaces compared with the same run on one host.
+
+The namespace test builds a private network (``deploy.netns.Lab``: a bridge namespace and
+four host namespaces with their own 10.77.0.x addresses, nothing in the root namespace),
+runs ``autocast deploy`` inside the first namespace with world and recorder there, the
+channel proxy in the second and the agents in the third and fourth, each namespace with
+its own Zenoh router, and checks that it is judged exactly as ``autocast run`` judges the
+same scenario and seed on one host. It skips, saying why, where namespaces are unavailable.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from deploy import hosts, netns, table
+from deploy.hosts import Host, HostProcessManager, HostsFile, load_hosts, parse_hosts, place
+from deploy.procs import ProcSpec
+from deploy.run import InputError, LaunchOptions, options_from, build_parser
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "deploy" / "hosts.example.toml"
+COMPOSE = REPO / "deploy" / "docker-compose.yml"
+RUN_FLAGS = ["--scenario", "left_turn", "--vehicles", "5", "--scheme", "autocast", "--seed", "0"]
+COMPARED = ("outcome", "closest_distance_m", "ticks", "reaction_time_s", "collider_visible_share",
+            "collider_points_mean", "distance_series_m", "dead_agents")
+
+
+def options(tmp_path: Path, *flags: str) -> LaunchOptions:
+    return options_from(build_parser().parse_args([*RUN_FLAGS, "--out", str(tmp_path), *flags]), hub="")
+
+
+def host(name: str, address: str, **kw) -> dict:
+    return {"name": name, "address": address, **kw}
+
+
+# ---------------------------------------------------------------------------- hosts file and placement
+
+
+def test_the_example_hosts_file_places_every_process_once(tmp_path):
+    hf = load_hosts(EXAMPLE)
+    placed = {spec.name: h.name for spec, h in place(options(tmp_path).run, hf)}
+    assert placed == {"recorder": "alpha", "world": "alpha", "proxy": "beta", "agent0": "alpha",
+                      "agent1": "beta", "agent2": "beta", "agent3": "gamma", "agent4": "gamma"}
+    assert [h.prefix for h in hf.hosts] == [("ssh", "-o", "BatchMode=yes", f"autocast@10.0.0.{i}") for i in (1, 2, 3)]
+
+
+def test_each_process_connects_to_its_own_hosts_router(tmp_path):
+    hf = load_hosts(EXAMPLE)
+    for spec, h in place(options(tmp_path).run, hf):
+        assert spec.args[spec.args.index("--connect") + 1] == f"tcp/{h.address}:7447"
+    routers = [hosts.router_spec(h, hf) for h in hf.hosts]
+    assert [r.args for r in routers] == [
+        ("--name", "alpha", "--listen", "tcp/10.0.0.1:7447"),
+        ("--name", "beta", "--listen", "tcp/10.0.0.2:7447", "--connect", "tcp/10.0.0.1:7447"),
+        ("--name", "gamma", "--listen", "tcp/10.0.0.3:7447", "--connect", "tcp/10.0.0.1:7447",
+         "--connect", "tcp/10.0.0.2:7447")]
+
+
+def test_a_command_runs_the_process_in_the_hosts_checkout_through_its_prefix():
+    h = Host("b", "10.0.0.2", prefix=("ssh", "u@b"), workdir="/opt/a c", python="/opt/py", env=(("K", "v w"),))
+    argv = hosts.command(h, ProcSpec("proxy", "channel_proxy", ("--seed", "3")))
+    assert argv == ["ssh", "u@b", "cd '/opt/a c' && exec env PYTHONUNBUFFERED=1 'K=v w' /opt/py -m deploy.remote exec "
+                                  "channel_proxy --seed 3"]
+
+
+@pytest.mark.parametrize("data, field", [
+    ({"host": []}, "no [[host]]"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "recorder", "proxy"], agents="rest", colour="red")]}, "colour"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "recorder"], agents="rest"), host("a", "10.0.0.2")]}, "used twice"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "recorder", "proxy"], agents="rest", port=0)]}, "port"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "recorder"], agents="rest"),
+               host("b", "10.0.0.1", run=["proxy"])]}, "two hosts' routers"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "lidar"])]}, "run"),
+    ({"host": [host("a", "10.0.0.1", run=["world", "recorder"], agents="some")]}, "agents"),
+    ({"host": [{"name": "a", "run": ["world"]}]}, "address"),
+])
+def test_a_bad_hosts_file_is_refused_naming_the_field(data, field):
+    with pytest.raises(InputError, match=re.escape(field)):
+        parse_hosts(data)
+
+
+@pytest.mark.parametrize("entries, field", [
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents=3)], "vehicles 3, 4 are on no host"),
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents=6)], "6 asked, 5 left"),
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents=[0, 9])], "vehicle 9 is not a connected vehicle"),
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents=[0]), host("b", "2", agents=[0, 1])],
+     "vehicle 0 is on a and b"),
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents="rest"), host("b", "2", agents="rest")],
+     "one host at most"),
+    ([host("a", "1", run=["world", "recorder"], agents="rest")], "proxy: no host runs it"),
+    ([host("a", "1", run=["world", "recorder", "proxy"], agents="rest"), host("b", "2", run=["world"])],
+     "world: on a, b"),
+])
+def test_a_placement_that_misses_or_repeats_a_process_is_refused(tmp_path, entries, field):
+    with pytest.raises(InputError, match=re.escape(field)):
+        place(options(tmp_path).run, parse_hosts({"host": entries}))
+
+
+def test_no_proxy_host_is_needed_when_the_scheme_shares_nothing(tmp_path):
+    hf = parse_hosts({"host": [host("a", "1", run=["world", "recorder"], agents="rest")]})
+    names = [spec.name for spec, _ in place(options(tmp_path, "--scheme", "single").run, hf)]
+    assert table.PROXY not in names and len(names) == 7
+
+
+def test_the_cli_refuses_a_bad_hosts_file_before_starting_anything(tmp_path):
+    bad = tmp_path / "hosts.toml"
+    bad.write_text('[[host]]\nname = "a"\naddress = "10.0.0.1"\nrun = ["world"]\n')
+    out = subprocess.run([sys.executable, "-m", "deploy.cli", "deploy", "--hosts", str(bad), *RUN_FLAGS,
+                          "--out", str(tmp_path / "runs")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "error: hosts: proxy: no host runs it" in out.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_dry_run_prints_every_hosts_router_and_command(tmp_path, capsys):
+    assert hosts.main(["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "host beta: router tcp/10.0.0.2:7447 (connects to tcp/10.0.0.1:7447); runs proxy agent1 agent2" in out
+    assert "  world: ssh -o BatchMode=yes autocast@10.0.0.1 'cd /opt/autocast-py && exec env" in out
+    assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------- docker compose (not run: no engine here)
+
+
+def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_path):
+    yaml = pytest.importorskip("yaml")
+    checked_in = yaml.safe_load(COMPOSE.read_text())
+    hf = load_hosts(EXAMPLE)
+    generated = yaml.safe_load(hosts.compose_text(options(tmp_path, "--run-id", "compose").run, hf, "test"))
+    assert generated == hosts.compose(options(tmp_path, "--run-id", "compose").run, hf)  # the emitter is YAML
+    services = checked_in["services"]
+    assert services.keys() == generated["services"].keys()
+    routers = {f"router-{h.name}": h for h in hf.hosts}
+    procs = [n for n in services if n not in routers]
+    assert sorted(procs) == sorted(["recorder", "world", "proxy"] + [f"agent{v}" for v in range(5)])
+    for name, h in routers.items():
+        cmd = services[name]["command"]
+        assert cmd[:3] == ["python", "-m", "deploy.router"] and f"tcp/0.0.0.0:{h.port}" in cmd
+        earlier = [o for o in hf.hosts[:hf.hosts.index(h)]]
+        assert [cmd[i + 1] for i, w in enumerate(cmd) if w == "--connect"] == [o.endpoint for o in earlier]
+        assert services[name]["ports"] == [f"{h.port}:{h.port}"]
+    for name in procs:
+        s = services[name]
+        (router,) = s["depends_on"]
+        assert router == f"router-{s['labels']['autocast.host']}"
+        assert s["command"][s["command"].index("--connect") + 1] == f"tcp/{router}:7447"
+        assert s["build"] == {"context": "..", "dockerfile": "deploy/Dockerfile"}
+    assert (REPO / "deploy" / "Dockerfile").exists()
+
+
+# ---------------------------------------------------------------------------- stopping through a prefix
+
+
+def test_a_process_is_stopped_through_its_hosts_prefix(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    here = Host("here", "127.0.0.1", port=port)  # prefix "sh -c": this machine
+    hf = HostsFile((here,))
+    procs = HostProcessManager(tmp_path, {here.router: here})
+    proc = procs.start(hosts.router_spec(here, hf))
+    try:
+        assert procs.remote_pid(here.router) == proc.pid  # sh, env and the wrapper all exec: one pid
+        deadline = time.monotonic() + 30
+        while "listening on" not in (tmp_path / f"{here.router}.log").read_text():
+            assert time.monotonic() < deadline and proc.poll() is None, (tmp_path / f"{here.router}.log").read_text()
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        procs.stop([here.router], grace_s=10)
+        assert proc.returncode == 0 and time.monotonic() - t0 < 5  # SIGINT through the prefix, no SIGKILL
+    finally:
+        procs.stop_all(0.5)
+
+
+# ---------------------------------------------------------------------------- the real thing, over namespaces
+
+
+def _launch(argv: list[str], log: Path) -> subprocess.Popen:
+    with open(log, "w") as err:
+        return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=err, text=True, start_new_session=True)
+
+
+def _result(proc: subprocess.Popen, log: Path, timeout: float) -> dict:
+    try:
+        stdout, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        pytest.fail(f"{proc.args[:6]} did not finish in {timeout} s:\n{log.read_text()[-3000:]}")
+    assert proc.returncode in (0, 1), log.read_text()[-3000:]
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def _processes_in(ns: str) -> set[tuple[str, str, str]]:
+    """(module, vid, --connect endpoint) of every ``python -m`` process in the namespace."""
+    out = set()
+    for pid in subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout.split():
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:
+            continue
+        if "-m" in argv and argv[argv.index("-m") + 1] != "deploy.remote":
+            def flag(name: str) -> str:
+                return argv[argv.index(name) + 1] if name in argv else ""
+            out.add((argv[argv.index("-m") + 1], flag("--vid"), flag("--listen") or flag("--connect")))
+    return out
+
+
+def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_path):
+    reason = netns.unavailable()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    out = tmp_path / "runs"
+    flags = [*RUN_FLAGS, "--json", "--out", str(out)]
+    seen: dict[str, set] = {}
+    with netns.Lab(4) as lab:
+        hosts_file = tmp_path / "hosts.toml"
+        hosts_file.write_text(lab.hosts_toml())
+        # Both at once (the same code, less wall time); the second starts once the first has
+        # warmed the numba caches (the namespaces share this machine's files) and skips that.
+        deadline = time.monotonic() + 150
+        single = _launch([sys.executable, "-m", "deploy.cli", "run", *flags, "--run-id", "single"],
+                         tmp_path / "single.err")
+        while "caches warm" not in (tmp_path / "single.err").read_text() and single.poll() is None:
+            assert time.monotonic() < deadline, "the single-host run never warmed its caches"
+            time.sleep(0.1)
+        multi = _launch(netns.deploy_argv(lab, hosts_file, [*flags, "--run-id", "multi", "--no-warm-up"]),
+                        tmp_path / "multi.err")
+        while multi.poll() is None and time.monotonic() < deadline:  # who runs where, while it runs
+            for h in lab.hosts:
+                seen.setdefault(h.name, set()).update(_processes_in(h.ns))
+            time.sleep(0.5)
+        many = _result(multi, tmp_path / "multi.err", 10)
+        one = _result(single, tmp_path / "single.err", max(10.0, deadline - time.monotonic()))
+        left = lab.leftovers()
+        names = [h.ns for h in lab.hosts] + [lab.switch]
+        addresses = {h.name: h.address for h in lab.hosts}
+    listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert not any(ns in listed for ns in names), "the lab's namespaces were not deleted"
+    assert left == {}, f"processes left in the namespaces after autocast deploy exited: {left}"
+    assert {k: many[k] for k in COMPARED} == {k: one[k] for k in COMPARED}
+    placed = {"recorder": "h0", "world": "h0", "proxy": "h1", "agent0": "h2", "agent1": "h2",
+              "agent2": "h3", "agent3": "h3", "agent4": "h3"}
+    assert many["hosts"] == placed
+    # Each process ran in its host's namespace, connected to that namespace's own router.
+    expected = {h: {("deploy.router", "", f"tcp/{a}:7447")} for h, a in addresses.items()}
+    expected["h0"].add(("deploy.cli", "", ""))  # the launcher
+    module = {"recorder": "deploy.recorder", "world": "world_server", "proxy": "channel_proxy"}
+    for name, h in placed.items():
+        vid = name[len("agent"):] if name.startswith("agent") else ""
+        expected[h].add((module.get(name, "vehicle_agent"), vid, f"tcp/{addresses[h]}:7447"))
+    assert seen == expected
+    for h in addresses:  # every router was linked to the three others
+        assert "linked to 3 other router(s)" in (out / "multi" / "logs" / f"router-{h}.log").read_text()

@@ -415,11 +415,15 @@ def routers_seen(session: zenoh.Session) -> list[dict]:
     return out
 
 
-def wait_for_mesh(session: zenoh.Session, hf: HostsFile, timeout_s: float, stop: threading.Event) -> str | None:
+def wait_for_mesh(session: zenoh.Session, hf: HostsFile, procs: HostProcessManager, timeout_s: float,
+                  stop: threading.Event) -> str | None:
     """None once every router answers and is linked to every other; else why not."""
     n = len(hf.hosts)
     deadline = time.monotonic() + timeout_s
     while True:
+        for spec, rc in procs.died():
+            tail = (procs.log_dir / f"{spec.name}.log").read_text(errors="replace").strip().splitlines()[-1:]
+            return f"{spec.name} exited (code {rc}) before the run: {' '.join(tail) or 'no output'}"
         seen = routers_seen(session)
         links = {r.get("zid"): sum(s.get("whatami") == "router" for s in r.get("sessions", [])) for r in seen}
         if len(links) == n and all(k >= n - 1 for k in links.values()):
@@ -451,7 +455,7 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
         connect = hf.launcher_connect or hf.router_endpoints()
         with session_scope(ZenohArgs(connect=connect), wait_s=MESH_TIMEOUT_S) as session:
             t0 = time.monotonic()
-            failure = wait_for_mesh(session, hf, MESH_TIMEOUT_S, stop)
+            failure = wait_for_mesh(session, hf, procs, MESH_TIMEOUT_S, stop)
             if failure == "interrupted":
                 return run.RunResult(run.EXIT_INTERRUPTED, None, "interrupted before an outcome")
             if failure:

@@ -261,3 +261,27 @@ def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_pat
     assert seen == expected
     for h in addresses:  # every router was linked to the three others
         assert "linked to 3 other router(s)" in (out / "multi" / "logs" / f"router-{h}.log").read_text()
+
+
+def test_a_router_that_cannot_start_fails_the_run_at_once(tmp_path):
+    """Host b's address is not on this machine (TEST-NET-1): its router cannot listen."""
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    hosts_file = tmp_path / "hosts.toml"
+    hosts_file.write_text(f'[defaults]\nwarm_up = false\n'
+                          f'[[host]]\nname = "a"\naddress = "127.0.0.1"\nport = {ports[0]}\n'
+                          f'run = ["world", "recorder", "proxy"]\nagents = "rest"\n'
+                          f'[[host]]\nname = "b"\naddress = "192.0.2.1"\nport = {ports[1]}\n')
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "deploy.cli", "deploy", "--hosts", str(hosts_file), *RUN_FLAGS,
+                          "--no-warm-up", "--json", "--out", str(tmp_path / "runs"), "--run-id", "r"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 3, out.stderr
+    record = json.loads(out.stdout.strip().splitlines()[-1])
+    assert record["outcome"] is None and record["failure"].startswith("router-b exited")
+    assert time.monotonic() - t0 < 30
+    left = subprocess.run(["pgrep", "-f", f"--listen tcp/127.0.0.1:{ports[0]}"], capture_output=True, text=True)
+    assert left.stdout == "", "host a's router was left running"

@@ -42,6 +42,7 @@ SCHEME_ORDER = ("single", "emp", "agnostic", "autocast", "autocast-fptas", "lane
 V2V_SCHEMES = ("agnostic", "autocast", "autocast-fptas")  # a schedule over the V2V channel to plot
 SCHEME_COLOR = {"single": "tab:gray", "emp": "tab:blue", "agnostic": "tab:orange", "autocast": "tab:red",
                 "autocast-fptas": "tab:pink", "lane": "tab:brown"}
+SCHEME_MARKER = {"single": "s", "emp": "D", "agnostic": "^", "autocast": "o", "autocast-fptas": "v", "lane": "x"}
 OUTCOME_COLOR = {"safe": "tab:green", "near_miss": "gold", "crash": "tab:red", "deadlock": "tab:purple"}
 VISIBILITY_SCENARIO = "red_light"  # the paper's collider-visibility figure uses scenario C
 DELAY_VEHICLES = 20  # the paper's scheduled-delay figure: 20 cars
@@ -216,27 +217,46 @@ def _ranks(a: np.ndarray) -> np.ndarray:
     return ranks
 
 
+DISCRETE_LEVELS = 8  # at most this many distinct rewards: group by value, else by quartile
+
+
+@dataclass(frozen=True, slots=True)
+class RewardGroup:
+    label: str  # "1" (a reward value) or "0.12-0.50" (a quartile's range)
+    x: float  # where it sits on the plot's reward axis: the value, or the quartile's number
+    delays_ms: np.ndarray
+    quartile: bool = False
+
+
+def reward_groups(sent: Sequence[Sent]) -> list[RewardGroup]:
+    """Objects grouped by reward, ascending: by value when rewards take few values (with
+    boolean relevance H counts the receivers that need the object), else by quartile."""
+    if not sent:
+        return []
+    reward = np.round(np.array([s.reward for s in sent]), 3)
+    delay_ms = np.array([s.delay_s * 1e3 for s in sent])
+    values = np.unique(reward)
+    if len(values) <= DISCRETE_LEVELS:
+        return [RewardGroup(f"{v:g}", float(v), delay_ms[reward == v]) for v in values]
+    edges = np.quantile(reward, [0.0, 0.25, 0.5, 0.75, 1.0])
+    idx = np.clip(np.searchsorted(edges, reward, side="right") - 1, 0, 3)
+    return [RewardGroup(f"{edges[q]:.2f}-{edges[q + 1]:.2f}", float(q), delay_ms[idx == q], quartile=True)
+            for q in range(4) if np.any(idx == q)]
+
+
 @dataclass(frozen=True, slots=True)
 class DelayRow:
     runs: int
     sent: int
     spearman: float | None  # reward vs delay: negative when higher rewards arrive earlier
-    top_median_ms: float | None  # median delay of the objects in the top quarter by reward
-    bottom_median_ms: float | None
+    by_reward: tuple[tuple[str, float, int], ...]  # (reward group, median delay ms, objects)
 
 
 def delay_table(by_scheme: dict[str, tuple[int, list[Sent]]]) -> dict[str, DelayRow]:
     out = {}
     for scheme, (runs, sent) in by_scheme.items():
-        rewards = np.array([s.reward for s in sent])
-        delays_ms = np.array([s.delay_s * 1e3 for s in sent])
-        top = bottom = None
-        if len(sent) >= 4:
-            q1, q3 = np.quantile(rewards, [0.25, 0.75])
-            hi, lo = delays_ms[rewards >= q3], delays_ms[rewards <= q1]
-            top = float(np.median(hi)) if len(hi) else None
-            bottom = float(np.median(lo)) if len(lo) else None
-        out[scheme] = DelayRow(runs, len(sent), spearman(rewards, delays_ms), top, bottom)
+        groups = tuple((g.label, float(np.median(g.delays_ms)), len(g.delays_ms)) for g in reward_groups(sent))
+        out[scheme] = DelayRow(runs, len(sent), spearman([s.reward for s in sent], [s.delay_s for s in sent]), groups)
     return out
 
 
@@ -250,6 +270,16 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def _dodge(xs: Sequence[int], i: int, k: int, densities: Sequence[int]) -> list[float]:
+    """Shift scheme i of k sideways by a little, so equal values do not hide each other."""
+    span = (max(densities) - min(densities)) or 10
+    return [x + (i - (k - 1) / 2) * 0.012 * span for x in xs]
 
 
 def _no_data(ax, what: str) -> None:
@@ -284,7 +314,7 @@ def plot_outcomes(records: Sequence[dict[str, Any]], path: Path) -> None:
                 if h >= 6:
                     ax.text(xi, b + h / 2, f"{h:.0f}%", ha="center", va="center", fontsize=8)
             bottom += share
-        labels = [f"{s}\n{sum(counts[s][o] for o in OUTCOMES)} runs" + (f", {counts[s]['failed']} failed"
+        labels = [f"{s}\n{_n(sum(counts[s][o] for o in OUTCOMES), 'run')}" + (f", {counts[s]['failed']} failed"
                                                                         if counts[s]["failed"] else "")
                   for s in schemes]
         ax.set_xticks(x, labels)
@@ -303,10 +333,12 @@ def plot_safe_vs_density(records: Sequence[dict[str, Any]], path: Path) -> None:
         _no_data(ax, "no judged runs")
     else:
         densities = sorted({n for _, n in table})
-        for s in schemes_in(judged(records)):
+        schemes = schemes_in(judged(records))
+        for i, s in enumerate(schemes):
             xs = [n for n in densities if (s, n) in table]
             ys = [100.0 * table[(s, n)][0] / table[(s, n)][1] for n in xs]
-            ax.plot(xs, ys, "o-", color=SCHEME_COLOR.get(s), label=s, lw=2, alpha=0.85)
+            ax.plot(_dodge(xs, i, len(schemes), densities), ys, "-", marker=SCHEME_MARKER.get(s, "o"),
+                    color=SCHEME_COLOR.get(s), label=s, lw=2, alpha=0.85)
         ax.set_xticks(densities)
         ax.set_ylim(-3, 103)
         ax.set_xlabel("connected vehicles in range")
@@ -333,10 +365,13 @@ def plot_visibility(records: Sequence[dict[str, Any]], path: Path) -> None:
         _no_data(b, "no judged runs")
     else:
         densities = sorted({n for _, n in table})
-        for s in schemes_in(judged(chosen)):
+        schemes = schemes_in(judged(chosen))
+        for i, s in enumerate(schemes):
             xs = [n for n in densities if (s, n) in table]
-            a.plot(xs, [100.0 * table[(s, n)].share_mean for n in xs], "o-", color=SCHEME_COLOR.get(s), label=s)
-            b.plot(xs, [table[(s, n)].points_mean for n in xs], "o-", color=SCHEME_COLOR.get(s), label=s)
+            style = {"marker": SCHEME_MARKER.get(s, "o"), "color": SCHEME_COLOR.get(s), "label": s, "alpha": 0.85}
+            a.plot(_dodge(xs, i, len(schemes), densities), [100.0 * table[(s, n)].share_mean for n in xs], "-",
+                   **style)
+            b.plot(_dodge(xs, i, len(schemes), densities), [table[(s, n)].points_mean for n in xs], "-", **style)
         for ax in (a, b):
             ax.set_xticks(densities)
             ax.set_xlabel("connected vehicles in range")
@@ -344,6 +379,7 @@ def plot_visibility(records: Sequence[dict[str, Any]], path: Path) -> None:
             ax.legend(fontsize=8)
         a.set_ylim(-3, 103)
         a.set_ylabel("ticks with the collider in view (%)")
+        b.set_ylim(bottom=0)
         b.set_ylabel("collider points in view (mean over ticks)")
     a.set_title(f"Collider visible time vs density ({which})")
     b.set_title(f"Collider visible size vs density ({which})")
@@ -392,27 +428,32 @@ def plot_scheduled_delay(by_scheme: dict[str, tuple[int, list[Sent]]], vehicles:
                          why_empty: str) -> None:
     plt = _pyplot()
     schemes = [s for s in SCHEME_ORDER if s in by_scheme] or ["-"]
-    fig, axes = plt.subplots(1, len(schemes), figsize=(5.5 * len(schemes), 4.5), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(schemes), figsize=(max(8.0, 5.5 * len(schemes)), 4.8), squeeze=False,
+                             sharey=True)
     for ax, s in zip(axes[0], schemes):
         runs, sent = by_scheme.get(s, (0, []))
         if not sent:
             _no_data(ax, why_empty if s == "-" else f"{s}: no transmissions")
             continue
-        reward = np.array([x.reward for x in sent])
-        delay_ms = np.array([x.delay_s * 1e3 for x in sent])
-        ax.scatter(reward, delay_ms, s=8, alpha=0.35, color=SCHEME_COLOR.get(s), edgecolors="none")
-        edges = np.unique(np.quantile(reward, np.linspace(0, 1, 9)))
-        if len(edges) > 2:
-            idx = np.clip(np.searchsorted(edges, reward, side="right") - 1, 0, len(edges) - 2)
-            mids = [(edges[i] + edges[i + 1]) / 2 for i in range(len(edges) - 1) if np.any(idx == i)]
-            meds = [float(np.median(delay_ms[idx == i])) for i in range(len(edges) - 1) if np.any(idx == i)]
-            ax.plot(mids, meds, "k-o", ms=4, lw=1.5, label="median per reward octile")
-            ax.legend(fontsize=8)
-        ax.set_title(f"{s}: {len(sent)} objects sent, {runs} runs")
-        ax.set_xlabel("object reward H = sum over receivers of (1 - v) r")
+        groups = reward_groups(sent)
+        xs = [g.x for g in groups]
+        step = min(np.diff(xs)) if len(xs) > 1 else 1.0
+        ax.boxplot([g.delays_ms for g in groups], positions=xs, widths=0.5 * step, whis=(5, 95), showfliers=False,
+                   manage_ticks=False, medianprops={"color": "k", "lw": 2})
+        rng = np.random.default_rng(0)
+        for g in groups:
+            jitter = rng.uniform(-0.2, 0.2, len(g.delays_ms)) * step
+            ax.scatter(g.x + jitter, g.delays_ms, s=6, alpha=0.25, color=SCHEME_COLOR.get(s), edgecolors="none")
+            ax.text(g.x, 101, f"n={len(g.delays_ms)}", ha="center", va="bottom", fontsize=7)
+        ax.set_xticks(xs, [g.label for g in groups])
+        ax.set_xlim(xs[0] - 0.6 * step, xs[-1] + 0.6 * step)
+        ax.set_ylim(0, 108)
+        ax.set_xlabel("object reward H = sum over receivers of (1 - v) r" + (" (quartiles)" if groups[0].quartile
+                                                                           else ""))
         ax.grid(alpha=0.3)
+        ax.set_title(f"{s}: {_n(len(sent), 'object')} sent, {_n(runs, 'run')}")
     axes[0][0].set_ylabel("scheduled delay (ms from the interval's start)")
-    fig.suptitle(f"Scheduled delay vs reward{f' ({vehicles} vehicles)' if vehicles else ''}: "
+    fig.suptitle(f"Scheduled delay vs reward{f' ({vehicles} vehicles)' if vehicles else ''}\n"
                  "when each transmitted object arrived in its 100 ms interval", fontsize=10)
     _save(fig, path)
 
@@ -487,11 +528,10 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
     lines += ["", f"## Scheduled delay vs reward ({f'{delay_vehicles} vehicles' if delay_vehicles else 'no V2V runs'})",
               "", delay_note, ""]
     if delay:
-        lines += _md(["scheme", "runs", "objects sent", "Spearman(reward, delay)", "median delay, top-quarter reward",
-                      "median delay, bottom-quarter reward"],
+        lines += _md(["scheme", "runs", "objects sent", "Spearman(reward, delay)",
+                      "median delay by reward: reward -> ms (objects)"],
                      [[s, d.runs, d.sent, "-" if d.spearman is None else f"{d.spearman:+.2f}",
-                       "-" if d.top_median_ms is None else f"{d.top_median_ms:.1f} ms",
-                       "-" if d.bottom_median_ms is None else f"{d.bottom_median_ms:.1f} ms"]
+                       "; ".join(f"{label} -> {ms:.1f} ({n})" for label, ms, n in d.by_reward)]
                       for s, d in delay.items()])
     failed = [r for r in records if r.get("status") != "judged"]
     if failed:

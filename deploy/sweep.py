@@ -379,7 +379,21 @@ class Job:
     err_path: Path
     t_start: float
     deadline: float
-    interrupted_at: float | None = None
+    cpu_s: float | None = None  # user + system time of the launcher and every process it reaped
+
+    def exited(self) -> bool:
+        """Reap the launcher if it has exited, keeping its rusage (which includes its children's)."""
+        if self.proc.returncode is not None:
+            return True
+        try:
+            pid, status, usage = os.wait4(self.proc.pid, os.WNOHANG)
+        except ChildProcessError:
+            return self.proc.poll() is not None
+        if pid == 0:
+            return False
+        self.proc.returncode = os.waitstatus_to_exitcode(status)
+        self.cpu_s = usage.ru_utime + usage.ru_stime
+        return True
 
 
 @dataclass
@@ -390,46 +404,43 @@ class Progress:
     total: int
     stream: TextIO = sys.stderr
     done: int = 0
-    failed: int = 0
     outcomes: Counter = field(default_factory=Counter)
     t0: float = field(default_factory=time.monotonic)
-    model_done_s: float = 0.0  # the model's estimate of the runs finished so far
-    model_left_s: float = 0.0
     _drawn: bool = False
 
     def __post_init__(self) -> None:
         self.tty = self.stream.isatty()
 
-    def eta_s(self, running_model_s: float) -> float:
-        """Model time still to go, scaled by how fast this machine has actually gone."""
-        elapsed = time.monotonic() - self.t0
-        pace = elapsed / self.model_done_s if self.model_done_s > 0 else 1.0
-        return max(0.0, (self.model_left_s + running_model_s) * pace)
+    def eta_s(self, model_spent_s: float, model_left_s: float) -> float:
+        """The model's time still to go, scaled by the pace so far (elapsed over the model's
+        time of the work done): absorbs the model's error, parallel runs and other load."""
+        pace = (time.monotonic() - self.t0) / model_spent_s if model_spent_s > 10.0 else 1.0
+        return max(0.0, model_left_s * pace)
 
-    def finished(self, rec: dict[str, Any], model_s: float, running_model_s: float) -> None:
+    def finished(self, rec: dict[str, Any], model: tuple[float, float]) -> None:
         self.done += 1
-        self.model_done_s += model_s
-        self.failed += rec["status"] == "failed"
         self.outcomes[rec["outcome"] or "failed"] += 1
-        what = (f"{rec['outcome']}  closest {rec.get('closest_distance_m', float('nan')):.2f} m"
-                if rec["status"] == "judged" else f"FAILED (exit {rec['exit_code']}): {rec['error']['failure']}")
+        if rec["status"] == "judged":
+            closest = rec.get("closest_distance_m")
+            what = f"{rec['outcome']}" + (f"  closest {closest:.2f} m" if isinstance(closest, (int, float)) else "")
+        else:
+            what = f"FAILED (exit {rec['exit_code']}): {rec['error']['failure']}"
         line = f"[{self.done}/{self.total}] {rec['run_key']}: {what}  ({rec['wall_total_s']:.0f} s)"
         if not self.tty:
-            line += f"  elapsed {_duration(time.monotonic() - self.t0)}  ETA {_duration(self.eta_s(running_model_s))}"
+            line += f"  elapsed {_duration(time.monotonic() - self.t0)}  ETA {_duration(self.eta_s(*model))}"
         self._clear()
         print(line, file=self.stream, flush=True)
 
-    def draw(self, running: list[str], running_model_s: float) -> None:
+    def draw(self, running: list[str], model: tuple[float, float]) -> None:
         if not self.tty:
             return
         width = 24
         filled = int(width * self.done / max(self.total, 1))
         counts = " ".join(f"{k} {v}" for k, v in sorted(self.outcomes.items()))
         line = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total}  {counts}  "
-                f"elapsed {_duration(time.monotonic() - self.t0)}  ETA {_duration(self.eta_s(running_model_s))}"
+                f"elapsed {_duration(time.monotonic() - self.t0)}  ETA {_duration(self.eta_s(*model))}"
                 f"  running: {', '.join(running)}")
-        cols = max(40, _terminal_columns() - 1)
-        self.stream.write("\r\033[K" + line[:cols])
+        self.stream.write("\r\033[K" + line[:max(40, _terminal_columns() - 1)])
         self.stream.flush()
         self._drawn = True
 
@@ -457,6 +468,8 @@ class Sweep:
         self.jobs, self.vehicle_budget = jobs, vehicle_budget
         self.runs_dir, self.logs_dir, self.results = out / "runs", out / "logs", out / RESULTS
         self.running: list[Job] = []
+        self.model_done_s = self.model_pending_s = 0.0
+        self.warm = False  # the sweep warmed the numba caches: runs skip it
         self.stop_requested = False
         self.kill_requested = False
 
@@ -472,7 +485,7 @@ class Sweep:
     def execute(self, todo: list[RunKey], progress: Progress) -> tuple[int, bool]:
         """Run ``todo``; return (failed runs, interrupted)."""
         pending = deque(todo)
-        progress.model_left_s = sum(estimate_run_s(k) for k in todo)
+        self.model_pending_s = sum(estimate_run_s(k) for k in todo)
         failed = 0
         while pending or self.running:
             if self.stop_requested:
@@ -480,26 +493,29 @@ class Sweep:
                 return failed, True
             while pending and self._can_start(pending[0]):
                 key = pending.popleft()
-                progress.model_left_s -= estimate_run_s(key)
+                self.model_pending_s -= estimate_run_s(key)
                 self._start(key)
-            for job in [j for j in self.running if j.proc.poll() is not None]:
+            finished = [(j, False) for j in self.running if j.exited()]
+            finished += [(j, True) for j in self.running if time.monotonic() > j.deadline and not j.exited()]
+            for job, timed_out in finished:
                 self.running.remove(job)
-                rec = self._finish(job)
+                if timed_out:
+                    self._terminate(job)
+                rec = self._finish(job, timed_out)
                 failed += rec["status"] == "failed"
-                progress.finished(rec, estimate_run_s(job.key), self._running_model_s())
-            for job in [j for j in self.running if time.monotonic() > j.deadline]:
-                self.running.remove(job)
-                self._terminate(job)
-                rec = self._finish(job, timed_out=True)
-                failed += 1
-                progress.finished(rec, estimate_run_s(job.key), self._running_model_s())
-            progress.draw([j.run_id for j in self.running], self._running_model_s())
+                self.model_done_s += estimate_run_s(job.key)
+                progress.finished(rec, self._model())
+            progress.draw([j.run_id for j in self.running], self._model())
             time.sleep(0.2)
         return failed, False
 
-    def _running_model_s(self) -> float:
+    def _model(self) -> tuple[float, float]:
+        """The model's seconds of work done (finished runs, and running ones up to their
+        estimate) and still to do (pending runs, the rest of running ones)."""
         now = time.monotonic()
-        return sum(max(0.0, estimate_run_s(j.key) - (now - j.t_start)) for j in self.running)
+        est = [(estimate_run_s(j.key), now - j.t_start) for j in self.running]
+        return (self.model_done_s + sum(min(e, age) for e, age in est),
+                self.model_pending_s + sum(max(0.0, e - age) for e, age in est))
 
     def _can_start(self, key: RunKey) -> bool:
         if not self.running:
@@ -521,7 +537,7 @@ class Sweep:
         out_path, err_path = self.logs_dir / f"{run_id}.out", self.logs_dir / f"{run_id}.err"
         argv = [sys.executable, "-m", "deploy.cli", "run", *key.run_flags(), "--json", "--out", str(self.runs_dir),
                 "--run-id", run_id, "--scans", self.spec.scans, "--timeout-s", repr(self.spec.timeout_s),
-                "--log-level", "WARNING", "--no-warm-up"]
+                "--log-level", "WARNING", *(["--no-warm-up"] if self.warm else [])]
         with open(out_path, "wb") as out, open(err_path, "wb") as err:
             proc = subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL, start_new_session=True,
                                     env=dict(os.environ, PYTHONUNBUFFERED="1"))
@@ -537,7 +553,7 @@ class Sweep:
         if timed_out:
             stderr += (f"\nautocast sweep: the launcher did not exit within {self.spec.timeout_s + LAUNCHER_SLACK_S:.0f} s;"
                        " killed it and its processes")
-        extra = self._limit_mcap(job.run_id)
+        extra = {"cpu_s": None if job.cpu_s is None else round(job.cpu_s, 1), **self._limit_mcap(job.run_id)}
         rec = record_of(job.key, job.run_id, rc, stdout, stderr, wall_s, extra)
         if timed_out:
             rec["status"] = "failed"
@@ -680,8 +696,9 @@ def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], recorded:
                      f" {_duration(sum(estimate_run_s(k) for k in mine)):>11}")
     wall = estimate_wall_s(todo, jobs)
     how = f"--jobs {jobs}, vehicle budget {vehicle_budget}" if jobs > 1 else "--jobs 1"
+    hours = f"{wall / 3600:.1f} h, " if wall >= 3600 else ""
     lines += [f"  already recorded in {out / RESULTS}: {recorded}; to run: {len(todo)}",
-              f"  estimated wall time: {_duration(wall)} ({wall / 3600:.1f} h, {how}; "
+              f"  estimated wall time: {_duration(wall)} ({hours}{how}; "
               "model: start-up + ticks x s/tick by vehicle count, docs/experiments.md)"]
     return "\n".join(lines)
 
@@ -744,8 +761,11 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         t0 = time.monotonic()
         try:
             warm_up(todo[0])
+            sweep.warm = True
         except KeyboardInterrupt:
             return EXIT_INTERRUPTED
+        except Exception:  # an optimisation: each run then warms its own
+            log.warning("warming the numba caches failed; every run warms its own", exc_info=True)
         signal.signal(signal.SIGINT, sweep.on_signal)
         signal.signal(signal.SIGTERM, sweep.on_signal)
         progress = Progress(len(todo))

@@ -12,6 +12,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from deploy import report, sweep
@@ -196,14 +197,21 @@ def test_per_scenario_counts_never_aware_as_zero_reaction():
     assert rows[("red_light", "autocast")].outcomes == Counter(safe=1, deadlock=1)
 
 
+def sent(rewards, delays_ms):
+    return [report.Sent(1, 0, k, float(r), 100, d / 1e3, 1) for k, (r, d) in enumerate(zip(rewards, delays_ms))]
+
+
 def test_spearman_and_delay_table():
     assert report.spearman([1, 2, 3, 4], [40, 30, 20, 10]) == pytest.approx(-1.0)
     assert report.spearman([0, 0, 0], [1, 2, 3]) is None
-    sent = [report.Sent(1, 0, k, float(k), 100, 0.01 * (8 - k), 1) for k in range(8)]
-    row = report.delay_table({"autocast": (1, sent)})["autocast"]
-    assert row.sent == 8 and row.spearman == pytest.approx(-1.0)
-    assert row.top_median_ms == pytest.approx(15.0)  # rewards 6, 7 -> 20 ms, 10 ms
-    assert row.bottom_median_ms == pytest.approx(75.0)  # rewards 0, 1 -> 80 ms, 70 ms
+    # few distinct rewards: grouped by value; ranks with ties (1.5, 1.5, 3.5, 3.5) vs (3, 4, 1, 2): -4 / sqrt(4 * 5)
+    row = report.delay_table({"autocast": (1, sent([1, 1, 2, 2], [30, 50, 10, 20]))})["autocast"]
+    assert row.sent == 4 and row.spearman == pytest.approx(-4 / 20 ** 0.5)
+    assert row.by_reward == (("1", pytest.approx(40.0), 2), ("2", pytest.approx(15.0), 2))
+    # many distinct rewards: quartiles of 0..11 (edges 0, 2.75, 5.5, 8.25, 11), delay 100 - 5 k ms
+    groups = report.reward_groups(sent(range(12), [100 - 5 * k for k in range(12)]))
+    assert [g.label for g in groups] == ["0.00-2.75", "2.75-5.50", "5.50-8.25", "8.25-11.00"]
+    assert [float(np.median(g.delays_ms)) for g in groups] == pytest.approx([95.0, 80.0, 65.0, 50.0])
 
 
 def test_report_of_an_empty_sweep_says_no_data(tmp_path):
@@ -244,6 +252,7 @@ def test_smoke_sweep_resume_and_report(tmp_path):
         assert r["status"] == "judged" and r["outcome"] in report.OUTCOMES
         assert (out / "runs" / r["run_id"] / "outcome.json").exists()
         assert "distance_series_m" not in r
+        assert r["cpu_s"] > 1.0  # the launcher's rusage includes every process of the run
     assert "[2/2]" in first.stderr
     assert json.loads((out / "plan.json").read_text())["spec"]["name"] == "smoke"
     assert not leftovers(r["run_id"] for r in results)
@@ -264,7 +273,7 @@ def test_smoke_sweep_resume_and_report(tmp_path):
 
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):
     f = tmp_path / "fail.toml"
-    f.write_text('preset = "smoke"\nschemes = ["single"]\ntimeout_s = 1\n')
+    f.write_text('preset = "smoke"\nschemes = ["single"]\nvehicles = [2]\ntimeout_s = 1\n')
     out = tmp_path / "fail"
     res = autocast("sweep", "--file", str(f), "--out", str(out))
     assert res.returncode == 1, res.stderr
@@ -274,14 +283,15 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path):
     assert "FAILED (exit 3)" in res.stderr
     assert not leftovers([r["run_id"]])
     assert report.main([str(out)]) == 0
-    assert "| left_turn-v5-c30-d0-single-s0-t20 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
+    assert "| left_turn-v2-c30-d0-single-s0-t20 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
 
 
 def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
     out = tmp_path / "stop"
-    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "sweep", "--preset", "smoke", "--out", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "sweep", "--preset", "smoke", "--vehicles", "2",
+                             "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    run_id = "left_turn-v5-c30-d0-single-s0-t20"
+    run_id = "left_turn-v2-c30-d0-single-s0-t20"
     pids = out / "runs" / run_id / "pids.json"
     try:
         deadline = time.monotonic() + 60

@@ -456,11 +456,13 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or sys.platform in ("darwin", "win32")
 
 
-NO_VIEWER = """error: no viewer here (no display) and no --save, --connect or --foxglove.
-  autocast view {mcap} --save run.rrd      then open it: rerun run.rrd
-                                           (or serve it to a browser: rerun --serve-web run.rrd, port 9090)
-  autocast view {mcap} --connect rerun+http://HOST:9876/proxy   to stream to a viewer running elsewhere
-  autocast view {mcap} --foxglove run.foxglove.mcap            a copy Foxglove can read (JSON channels)"""
+NO_VIEWER = """error: no display here to start a viewer on; choose an output:
+  autocast view {mcap} --save run.rrd
+      then `rerun run.rrd` where there is a display, or `rerun --serve-web run.rrd` and a browser on port 9090
+  autocast view {mcap} --connect rerun+http://HOST:9876/proxy
+      stream to a rerun viewer running elsewhere
+  autocast view {mcap} --foxglove run.foxglove.mcap
+      a copy of the log that Foxglove can open (JSON channels)"""
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

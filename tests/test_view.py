@@ -53,6 +53,10 @@ def test_view_saves_an_rrd_that_loads_back_with_every_entity(run_mcap, tmp_path)
     timelines = {t for line in str(store.summary()).splitlines() if "/world/vehicles/0/box" in line
                  for t in ("sim_time", "tick") if t in line}
     assert timelines == {"sim_time", "tick"}
+    assert RrdReader(rrd).blueprints()  # the layout travels with the file
+    verify = subprocess.run([sys.executable, "-m", "rerun", "rrd", "verify", str(rrd)], capture_output=True, text=True,
+                            timeout=120)
+    assert verify.returncode == 0, verify.stderr[-2000:]  # the viewer's own loader accepts it
 
 
 def test_every_message_of_the_run_is_shown_once(run_mcap, tmp_path):

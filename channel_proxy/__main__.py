@@ -90,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    p = config.profile
+    log.info("%s mode, profile %s: B=%g Mbps, T_n=%g ms, N=%d, R=%g m", config.mode, p.name, p.bandwidth_bps / 1e6,
+             p.frame_duration_s * 1e3, p.n_frames, p.prr.range_m)
     try:
         with session_scope(zenoh_args_from(args)) as session:
             proxy = ChannelProxy(config, session)

@@ -7,6 +7,8 @@ scheduling instances from the same profile then agree on B, T_n and N.
 
 from __future__ import annotations
 
+import importlib
+
 from dataclasses import dataclass, field
 
 from channel_proxy.loss import PrrModel
@@ -56,10 +58,20 @@ def register_profile(profile: ChannelProfile) -> ChannelProfile:
 
 
 def get_profile(name: str) -> ChannelProfile:
-    try:
+    """A registered profile, or the ``ChannelProfile`` at an import path ``package.module:NAME``."""
+    if name in PROFILES:
         return PROFILES[name]
-    except KeyError:
-        raise KeyError(f"unknown channel profile {name!r}; known: {', '.join(sorted(PROFILES))}") from None
+    if ":" in name:
+        module, _, attr = name.partition(":")
+        try:
+            profile = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise KeyError(f"cannot load channel profile {name!r}: {exc}") from None
+        if not isinstance(profile, ChannelProfile):
+            raise KeyError(f"{name!r} is a {type(profile).__name__}, not a ChannelProfile")
+        return profile
+    raise KeyError(f"unknown channel profile {name!r}; known: {', '.join(sorted(PROFILES))} "
+                   "(or package.module:NAME)")
 
 
 register_profile(ChannelProfile(

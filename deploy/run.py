@@ -102,6 +102,12 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__) 
     sc.add_argument("--seed", default="0", help="background placement and channel loss (default 0)")
     sc.add_argument("--duration", default="20", metavar="SECONDS", help="sim time limit (default 20)")
     ap.add_argument("--scheme", default="autocast", help=f"{' | '.join(SCHEMES)} (default autocast)")
+    ap.add_argument("--scheduler", default=None, metavar="NAME",
+                    help="replace the scheme's scheduler (agnostic, autocast, autocast-fptas) with a registered "
+                         "one or package.module:function (docs/extending.md)")
+    ap.add_argument("--channel-profile", default=table.DEFAULT_PROFILE, metavar="NAME",
+                    help="the V2V radio: a registered profile or package.module:NAME (default lte-direct; "
+                         "python -m channel_proxy --list-profiles)")
     ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
     ap.add_argument("--json", action="store_true", help="end stdout with the outcome as one JSON line")
     ap.add_argument("--out", default="runs", metavar="DIR", help="runs go to DIR/<run id>/ (default runs/)")
@@ -163,9 +169,35 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     run_dir = Path(args.out) / run_id
     if run_dir.exists():
         raise InputError(f"run_id: {run_dir} already exists")
+    scheduler, profile = plug_ins_from(args, scheme)
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
-                          agent_timeout_s=agent_timeout_s, log_level=level)
+                          agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
+                          channel_profile=profile)
     return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
+
+
+def plug_ins_from(args: argparse.Namespace, scheme: str) -> tuple[str | None, str]:
+    """The scheduler and channel profile, loaded here once so a bad name fails before anything starts."""
+    from channel_proxy.profiles import get_profile
+    from vehicle_agent.scheduler import UnknownSchedulerError, get
+
+    scheduler = args.scheduler
+    if scheduler is not None:
+        if scheme not in table.SCHEDULING_SCHEMES:
+            raise InputError(f"scheduler: only schemes that schedule ({', '.join(table.SCHEDULING_SCHEMES)}) "
+                             f"take one, not {scheme!r}")
+        try:
+            get(scheduler)
+        except UnknownSchedulerError as exc:
+            raise InputError(f"scheduler: {exc}") from None
+    profile = args.channel_profile
+    if profile != table.DEFAULT_PROFILE and scheme in (*table.NO_PROXY_SCHEMES, table.EMP_SCHEME):
+        raise InputError(f"channel_profile: scheme {scheme!r} has no V2V channel to apply it to")
+    try:
+        get_profile(profile)
+    except KeyError as exc:
+        raise InputError(f"channel_profile: {exc.args[0]}") from None
+    return scheduler, profile
 
 
 def _positive(field: str, value: float) -> float:

@@ -20,6 +20,8 @@ WORLD = "world"
 PROXY = "proxy"
 NO_PROXY_SCHEMES = ("single", "lane")  # no V2V: nothing for a channel to carry
 EMP_SCHEME = "emp"  # the paper's EMP baseline: the proxy plays the edge relay
+SCHEDULING_SCHEMES = ("agnostic", "autocast", "autocast-fptas")  # the ones --scheduler can replace
+DEFAULT_PROFILE = "lte-direct"
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,6 +38,8 @@ class RunConfig:
     agent_timeout_s: float = 10.0
     log_level: str = "INFO"  # world, proxy, recorder
     agent_log_level: str = "WARNING"  # N agents at INFO would bury the other logs
+    scheduler: str | None = None  # None: the scheme's own
+    channel_profile: str = DEFAULT_PROFILE  # the V2V radio, played by the proxy, assumed by the agents
 
     @property
     def mcap_path(self) -> Path:
@@ -80,6 +84,7 @@ def _common(cfg: RunConfig) -> tuple[str, ...]:
 def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
     p = cfg.params
     meta = {"scenario": p.scenario, "vehicles": p.vehicles, "seed": p.seed, "scheme": cfg.scheme,
+            "scheduler": cfg.scheduler or "", "channel_profile": cfg.channel_profile,
             "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
             "mode": "realtime" if cfg.realtime else "lockstep"}
     flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
@@ -100,10 +105,16 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
 def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
     flags = [*_common(cfg), "--seed", str(cfg.params.seed), "--log-level", cfg.log_level,
              "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v"]
+    if cfg.scheme != EMP_SCHEME:
+        flags += ["--profile", cfg.channel_profile]
     if cfg.realtime:
         flags.append("--realtime")
     return tuple(flags)
 
 
 def agent_args(cfg: RunConfig, vid: int) -> tuple[str, ...]:
-    return (*_common(cfg), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level", cfg.agent_log_level)
+    flags = [*_common(cfg), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level", cfg.agent_log_level,
+             "--channel-profile", cfg.channel_profile]
+    if cfg.scheduler:
+        flags += ["--scheduler", cfg.scheduler]
+    return tuple(flags)

@@ -216,7 +216,12 @@ def test_the_world_dying_without_an_outcome_fails_the_run(launches):
                                           (["--scenario", "roundabout"], "scenario"),
                                           (["--collider-speed", "-1"], "collider_speed_kmh"),
                                           (["--delta", "nan"], "delta_s"), (["--scheme", "telepathy"], "scheme"),
-                                          (["--scans", "some"], "scans"), (["--run-id", "a/b"], "run_id")])
+                                          (["--scans", "some"], "scans"), (["--run-id", "a/b"], "run_id"),
+                                          (["--scheduler", "telepathy"], "scheduler"),
+                                          (["--scheduler", "no_such_pkg:f"], "scheduler"),
+                                          (["--scheme", "single", "--scheduler", "greedy"], "scheduler"),
+                                          (["--channel-profile", "5g-magic"], "channel_profile"),
+                                          (["--scheme", "emp", "--channel-profile", "dsrc"], "channel_profile")])
 def test_a_bad_flag_is_refused_naming_the_field(tmp_path, capsys, flags, field):
     assert run_main(["--out", str(tmp_path), *flags]) == 2
     assert f"error: {field}: " in capsys.readouterr().err
@@ -228,3 +233,39 @@ def test_the_cli_refuses_a_bad_flag_before_starting_anything(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "error: vehicles: 500 is not in [2, 64]" in p.stderr
     assert p.stdout == "" and list(tmp_path.iterdir()) == []
+
+
+def test_a_scheduler_and_a_channel_profile_plug_in(launches):
+    """--scheduler and --channel-profile reach the agents and the proxy: the proxy plays
+    the named profile, the agents schedule with the named scheduler (here one given by
+    import path) and the MCAP says which were used."""
+    launch = launches("plugins", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "autocast",
+                      "--scheduler", "vehicle_agent.scheduler.agnostic:agnostic", "--channel-profile", "dsrc",
+                      "--duration", "3")
+    assert launch.finish(timeout=180) in (0, 1), launch.stderr
+    assert launch.result["outcome"] in OUTCOMES
+    assert "profile dsrc: B=6 Mbps, T_n=100 ms, N=1" in (launch.run_dir / "logs" / "proxy.log").read_text()
+    configs = [line for log in (launch.run_dir / "logs").glob("agent*.log")
+               for line in log.read_text().splitlines() if line.startswith("agent_config ")]
+    assert len(configs) == 5
+    for line in configs:
+        cfg = json.loads(line.removeprefix("agent_config "))
+        assert (cfg["scheduler"], cfg["channel_profile"]) == ("vehicle_agent.scheduler.agnostic:agnostic", "dsrc")
+    with open(launch.run_dir / "run.mcap", "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["autocast"]
+    assert meta["scheduler"] == "vehicle_agent.scheduler.agnostic:agnostic" and meta["channel_profile"] == "dsrc"
+
+
+def test_a_channel_profile_by_import_path(tmp_path, monkeypatch):
+    from channel_proxy.profiles import get_profile
+
+    (tmp_path / "my_radio.py").write_text(
+        "from channel_proxy.profiles import ChannelProfile\n"
+        "WIDE = ChannelProfile('wide', 28e6, 0.005, description='a 28 Mbps test radio')\n"
+        "NOT_A_PROFILE = 3\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert get_profile("my_radio:WIDE").bandwidth_bps == 28e6
+    with pytest.raises(KeyError, match="not a ChannelProfile"):
+        get_profile("my_radio:NOT_A_PROFILE")
+    with pytest.raises(KeyError, match="cannot load"):
+        get_profile("my_radio:MISSING")

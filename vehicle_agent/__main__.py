@@ -26,6 +26,8 @@ from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.link import V2VLink
+from vehicle_agent.scheduler import UnknownSchedulerError
+from vehicle_agent.scheduler import get as get_scheduler
 from vehicle_agent.warmup import warm_up
 
 log = logging.getLogger("vehicle_agent")
@@ -47,6 +49,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          "lane: a blind lane follower (the world server's test agents)")
     ap.add_argument("--channel-profile", default="lte-direct",
                     help="the radio profile the proxy plays (B, T_n, N must agree with it)")
+    ap.add_argument("--scheduler", default=None,
+                    help="schedule with this registered scheduler or package.module:function instead of "
+                         "the scheme's own (docs/scheduler.md)")
     ap.add_argument("--log-level", default="WARNING")
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -65,6 +70,12 @@ def _ask(session, key: str, expected: type, deadline: float):
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format=f"%(asctime)s agent{args.vid} %(levelname)s %(message)s")
+    try:  # a bad plug-in name fails here, not at the first schedule
+        get_profile(args.channel_profile)
+        get_scheduler(args.scheduler or SCHEDULER_OF.get(args.scheme, "autocast"))
+    except (KeyError, UnknownSchedulerError) as exc:
+        print(f"error: {exc.args[0]}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -92,7 +103,11 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     except TimeoutError as exc:
         log.error("world never answered: %s", exc)
         return 2
-    step = Pipeline(session, run, mission, mapmsg, args.scheme, drops, stop, args.channel_profile)
+    step = Pipeline(session, run, mission, mapmsg, args.scheme, drops, stop, args.channel_profile, args.scheduler)
+    if step.link is not None:  # one line per agent, like agent_timings at exit: what this vehicle runs with
+        config = {"vid": vid, "scheme": args.scheme, "scheduler": step.agreement.scheduler,
+                  "channel_profile": args.channel_profile}
+        print(f"agent_config {json.dumps(config)}", file=sys.stderr, flush=True)
     if args.scheme != "lane":
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
@@ -137,13 +152,13 @@ class Pipeline:
     """One scheme's per-interval step around the Agent's stages."""
 
     def __init__(self, session, run: str, mission: Mission, mapmsg: MapMsg, scheme: str, drops: DropCounter,
-                 stop: threading.Event, profile_name: str) -> None:
+                 stop: threading.Event, profile_name: str, scheduler: str | None = None) -> None:
         self.session, self.run_id, self.mission, self.scheme = session, run, mission, scheme
         self.agent = Agent(mission, mapmsg)
         self.lane_follower = LaneFollower(mission)
         self.link = None if scheme in ("single", "lane") else V2VLink(session, run, mission.vid, drops, stop)
         self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
-                                                      scheduler=SCHEDULER_OF.get(scheme, "autocast"))
+                                                      scheduler=scheduler or SCHEDULER_OF.get(scheme, "autocast"))
         self.heard: list[int] = []
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report_pub = reliable_publisher(session, keys.report(run, mission.vid)) if mission.role == "ego" else None

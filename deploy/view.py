@@ -286,8 +286,9 @@ class Scene:
                      static=True)
 
     def tick(self, t: Tick) -> None:
-        for vid in self.live - set(t.live):  # a vehicle that left play (its agent died)
-            self.rec.log(f"world/vehicles/{vid}", rr.Clear(recursive=True))
+        for vid in sorted(self.live - set(t.live)):  # its agent died: the vehicle brakes to a stop, unseen
+            self.rec.log("events", rr.TextLog(f"tick {t.tick}: vehicle {vid} left play; its box stays where it was "
+                                              "last reported", level=rr.TextLogLevel.WARN))
         self.live = set(t.live)
         known = [s for s in t.lights if s.light_id in self.lights_xy]
         if known:
@@ -401,7 +402,8 @@ class Scene:
         r = o.result
         series = np.asarray(r.get("distance_series_m") or [], dtype=np.float64).reshape(-1, 2)
         if len(series):
-            self.rec.send_columns("judge/ego_collider_distance_m", indexes=[rr.TimeColumn(SIM_TIME, duration=series[:, 0])],
+            self.rec.send_columns("judge/ego_collider_distance_m",
+                                  indexes=[rr.TimeColumn(SIM_TIME, duration=series[:, 0])],
                                   columns=rr.Scalars.columns(scalars=series[:, 1]))
         brief = {k: v for k, v in r.items() if not isinstance(v, (list, dict))}
         level = rr.TextLogLevel.INFO if r.get("outcome") == "safe" else rr.TextLogLevel.WARN
@@ -423,7 +425,8 @@ def blueprint(vids: list[int]) -> rrb.Blueprint:
         rrb.Vertical(rrb.TimeSeriesView(origin="stats", name="channel"),
                      rrb.TimeSeriesView(origin="schedule", name="bytes per sender"),
                      rrb.TimeSeriesView(origin="judge", name="ego-collider distance"),
-                     rrb.TextLogView(origin="/", contents=["+ schedule/**", "+ outcome"], name="schedule")),
+                     rrb.TextLogView(origin="/", contents=["+ schedule/**", "+ outcome", "+ events"],
+                                     name="schedule")),
         column_shares=[3, 2]), collapse_panels=False)
 
 
@@ -431,15 +434,12 @@ def build(path: Path, rec: rr.RecordingStream, scan_points: int = DEFAULT_SCAN_P
     """Log the whole run at ``path`` into ``rec``; the map and missions first (they are
     fetched after the first tick, so they come late in the log)."""
     t0 = time.perf_counter()
-    stats = ViewStats(run_id=run_id_of(path))
-    first = static_topics(path)
-    if first:
-        prepass = Scene(rec, ViewStats(), scan_points)
-        for topic, msg in iter_log(path, prepass.stats, topics=first):
-            prepass.add(topic, msg)
-    scene = Scene(rec, stats, scan_points)
-    if first:
-        scene.missions, scene.lights_xy, scene.static_logged = prepass.missions, prepass.lights_xy, prepass.static_logged
+    scene = Scene(rec, ViewStats(), scan_points)
+    static = static_topics(path)
+    if static:  # (an empty topic list would mean every topic)
+        for topic, msg in iter_log(path, scene.stats, topics=static):
+            scene.add(topic, msg)
+    stats = scene.stats = ViewStats(run_id=run_id_of(path))  # the main pass counts the map and missions again
     rec.send_blueprint(blueprint(sorted(scene.missions)))
     for topic, msg in iter_log(path, stats):
         scene.add(topic, msg)
@@ -475,7 +475,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--foxglove", type=Path, metavar="OUT.mcap",
                     help="also write a copy of the log with JSON channels, for Foxglove")
     ap.add_argument("--scan-points", type=int, default=DEFAULT_SCAN_POINTS,
-                    help=f"at most this many LiDAR points per scan (evenly thinned; 0: all; default {DEFAULT_SCAN_POINTS})")
+                    help=f"at most this many LiDAR points per scan, thinned evenly (0: all; default "
+                         f"{DEFAULT_SCAN_POINTS})")
     ap.add_argument("--log-level", default="WARNING")
     return ap.parse_args(argv)
 

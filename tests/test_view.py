@@ -53,6 +53,9 @@ def test_view_saves_an_rrd_that_loads_back_with_every_entity(run_mcap, tmp_path)
                  for t in ("sim_time", "tick") if t in line}
     assert timelines == {"sim_time", "tick"}
     assert RrdReader(rrd).blueprints()  # the layout travels with the file
+    received = [v for chunk in RrdReader(rrd).stream().to_chunks() if chunk.entity_path.endswith("/received")
+                for v in chunk.to_record_batch().column("Points3D:positions").to_pylist()]
+    assert any(received), "no vehicle shows received points"
     verify = subprocess.run([sys.executable, "-m", "rerun", "rrd", "verify", str(rrd)], capture_output=True, text=True,
                             timeout=120)
     assert verify.returncode == 0, verify.stderr[-2000:]  # the viewer's own loader accepts it

@@ -151,12 +151,13 @@ class Hub:
 
 
 @pytest.fixture
-def recorder(procs, hub, tmp_path):
-    """A recorder process on the test's hub; yields (process, hub, path)."""
+def recorder(procs, hub, tmp_path, request):
+    """A recorder process on the test's hub; yields (process, hub, path). Extra flags by
+    indirect parametrization."""
     path = tmp_path / "run.mcap"
     h = Hub(hub)
     p = procs("deploy.recorder", "--run-id", RUN, "--connect", hub, "--out", str(path), "--drain-s", "0.3",
-              "--meta", "scheme=single")
+              "--meta", "scheme=single", *getattr(request, "param", ()))
     h.wait_subscribed()
     yield p, h, path
     h.close()
@@ -176,6 +177,17 @@ def test_the_outcome_ends_the_recording(recorder):
     assert p.wait(timeout=15) == 0
     assert topics_in(path) == {keys.world_tick(RUN): 5, keys.scan(RUN, 0): 5, keys.cmd(RUN, 0): 5,
                                keys.world_outcome(RUN): 1}  # vehicle 1's scan is not kept
+
+
+@pytest.mark.parametrize("recorder", [("--json-mirror",)], indirect=True)
+def test_the_recorder_process_writes_the_json_mirror(recorder):
+    p, h, path = recorder
+    h.publish_ticks(4)
+    h.session.put(keys.world_outcome(RUN), encode(Outcome(4, 0.4, {"outcome": "safe"})))
+    assert p.wait(timeout=15) == 0
+    counts = topics_in(path)
+    assert counts[JSON_PREFIX + keys.world_tick(RUN)] == counts[keys.world_tick(RUN)] == 4
+    assert counts[JSON_PREFIX + keys.world_outcome(RUN)] == 1
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

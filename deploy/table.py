@@ -88,7 +88,8 @@ def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
             "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
             "mode": "realtime" if cfg.realtime else "lockstep"}
     flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
-    return (*_common(cfg), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level, *flags)
+    return (*_common(cfg), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level,
+            "--json-mirror", *flags)  # JSON beside msgpack: Foxglove and mcap tools read it (docs/viewing.md)
 
 
 def world_args(cfg: RunConfig) -> tuple[str, ...]:

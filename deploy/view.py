@@ -36,7 +36,7 @@ from deploy.recorder import MESSAGE_ENCODING, METADATA_NAME, mirror_file, read_m
 from protocol.codec import MalformedMessage, decode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
                                EmpBundle, EmpUpload, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Tick,
-                               VehicleSpec)
+                               VehicleSpec, WorldTruth)
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.payload import decode_object
 
@@ -158,12 +158,10 @@ def decimate(points: np.ndarray, max_points: int) -> np.ndarray:
 def scan_points(scan: Scan, lidar: LidarConfig, max_points: int) -> np.ndarray:
     """About ``max_points`` sensor-frame points of a scan, thinned evenly in azimuth.
 
-    A version-2 scan is a range image (azimuth x beam): every k-th azimuth column is the
-    range image of a LiDAR with ``azimuth_steps / k`` steps, so it is thinned before the
-    points are computed. A version-1 scan carries its points.
+    A scan is a range image (azimuth x beam): every k-th azimuth column is the range
+    image of a LiDAR with ``azimuth_steps / k`` steps, so it is thinned before the points
+    are computed.
     """
-    if not callable(scan.points):
-        return decimate(scan.points, max_points)
     rays = int(np.count_nonzero(scan.range_cm))
     k = 1
     if 0 < max_points < rays:
@@ -231,7 +229,8 @@ class Scene:
         self.static_logged: set[str] = set()  # topics of the map and missions already logged
         self.series = Series(rec)
         self.now = (0.0, 0)  # sim time and tick of the message being logged
-        self.handlers = {MapMsg: self.map, Mission: self.mission, Tick: self.tick, Scan: self.scan,
+        self.handlers = {MapMsg: self.map, Mission: self.mission, Tick: self.tick, WorldTruth: self.truth,
+                         Scan: self.scan,
                          Command: self.command, ControlMsg: self.control, CtrlBundle: self.ctrl_bundle,
                          DataTx: self.data_tx, DataBundle: self.data_bundle, ChannelStats: self.channel_stats,
                          AgentReport: self.report, Outcome: self.outcome, EmpUpload: self.emp_upload,
@@ -296,21 +295,30 @@ class Scene:
                 [[*self.lights_xy[s.light_id], 5.0] for s in known], radii=0.8,
                 colors=[LIGHT_COLORS.get(s.state, (255, 255, 255)) for s in known]))
 
+    def truth(self, w: WorldTruth) -> None:
+        """Every vehicle's true box, the passive collider's included (it has no scan or
+        control message of its own)."""
+        for vid, (x, y, yaw), speed, (length, width, height) in zip(w.vids.tolist(), w.pose.tolist(),
+                                                                    w.speed_mps.tolist(), w.size_m.tolist()):
+            spec = dataclasses.replace(CAR, length_m=length, width_m=width, height_m=height)
+            self.pose(vid, w.tick, Pose(x, y, yaw), speed, spec)
+
     # -- one vehicle
 
     def color_of(self, vid: int) -> tuple[int, int, int]:
         mission = self.missions.get(vid)
         return ROLE_COLORS.get(mission.role, OTHER_COLOR) if mission else OTHER_COLOR
 
-    def pose(self, vid: int, tick: int, pose: Pose, speed_mps: float | None) -> None:
-        """A vehicle's box and trace, once per tick (its scan and its control message carry the same pose)."""
+    def pose(self, vid: int, tick: int, pose: Pose, speed_mps: float | None, spec: VehicleSpec | None = None) -> None:
+        """A vehicle's box and trace, once per tick (the world's truth, its scan and its
+        control message carry the same pose; the first to arrive is drawn)."""
         if self.last_pose_tick.get(vid, -1) >= tick:
             return
         self.last_pose_tick[vid] = tick
         mission = self.missions.get(vid)
-        label = f"{vid} {mission.role}" if mission else str(vid)
-        self.rec.log(f"world/vehicles/{vid}/box", box_of(pose, mission.spec if mission else CAR, self.color_of(vid),
-                                                         label))
+        label = f"{vid} {mission.role}" if mission else f"{vid} (no V2V)"
+        spec = spec or (mission.spec if mission else CAR)
+        self.rec.log(f"world/vehicles/{vid}/box", box_of(pose, spec, self.color_of(vid), label))
         trace = self.trace.setdefault(vid, [])
         trace.append((pose.x_m, pose.y_m))
         if len(trace) > 1:

@@ -31,6 +31,11 @@ def world_map(run: str) -> str:
     return f"{_run(run)}/world/map"
 
 
+def world_truth(run: str) -> str:
+    """Ground truth per tick (``WorldTruth``): recorded, never read by agents."""
+    return f"{_run(run)}/world/truth"
+
+
 def world_outcome(run: str) -> str:
     return f"{_run(run)}/world/outcome"
 

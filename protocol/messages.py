@@ -148,6 +148,19 @@ class Scan:
         return np.column_stack([d * np.cos(az[col]), d * np.sin(az[col]), d * np.tan(el[beam])]).astype(np.float32)
 
 
+@message(13)
+class WorldTruth:
+    """Ground truth of a tick, for the log and the viewer only (no agent subscribes):
+    where every vehicle, the passive collider included, really is."""
+
+    tick: int
+    t_sim_s: float
+    vids: np.ndarray  # int64 (n,)
+    pose: np.ndarray  # float32 (n, 3): x_m, y_m, yaw_rad
+    speed_mps: np.ndarray  # float32 (n,)
+    size_m: np.ndarray  # float32 (n, 3): length, width, height
+
+
 @message(5)
 class Command:
     """An agent's actuation for the interval that starts at ``tick``."""

@@ -145,16 +145,19 @@ def test_the_mcap_holds_every_topic(scenario_runs):
         (outcome,) = [decode(m.data, Outcome) for _, _, m in
                       make_reader(f).iter_messages(topics=[keys.world_outcome(run)])]
     counts = {ch.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, ch in summary.channels.items()}
-    expected = {keys.world_tick(run), keys.world_map(run), keys.world_outcome(run), keys.scan(run, 0)}
+    expected = {keys.world_tick(run), keys.world_map(run), keys.world_outcome(run), keys.world_truth(run),
+                keys.scan(run, 0)}
     expected |= {keys.cmd(run, v) for v in range(5)} | {keys.mission(run, v) for v in range(5)}
     assert expected <= set(counts)
     assert keys.scan(run, 1) not in counts  # only the ego's scans by default
     assert ticks == list(range(r["ticks"]))
-    assert [s.tick for s in scans] == ticks and scans[0].points.shape[1] == 3
+    assert [s.tick for s in scans] == ticks and scans[0].range_cm.shape == (1800, 64)
     assert all(counts[keys.cmd(run, v)] > 0 for v in range(5))
     assert outcome.result["outcome"] == r["outcome"]
-    assert {ch.message_encoding for ch in summary.channels.values()} == {"msgpack"}
-    assert {"Tick", "Scan", "Command", "Outcome", "MapMsg", "Mission"} <= {s.name for s in summary.schemas.values()}
+    assert {ch.message_encoding for ch in summary.channels.values()} == {"msgpack", "json"}  # the JSON mirror
+    assert counts[f"json/{keys.world_truth(run)}"] == counts[keys.world_truth(run)] == r["ticks"]
+    assert {"Tick", "WorldTruth", "Scan", "Command", "Outcome", "MapMsg", "Mission"} <= {
+        s.name for s in summary.schemas.values()}
     assert {k: meta["autocast"][k] for k in ("scenario", "seed", "scheme", "vehicles", "run_id")} == {
         "scenario": "left_turn", "seed": "0", "scheme": "single", "vehicles": "5", "run_id": run}
     assert meta["autocast"]["git_revision"]

@@ -86,8 +86,9 @@ class WorldServer:
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
         self._tick_pub = reliable_publisher(s, keys.world_tick(run))
+        self._truth_pub = reliable_publisher(s, keys.world_truth(run))
         self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
-        self._entities += [self._tick_pub, *self._scan_pubs.values()]
+        self._entities += [self._tick_pub, self._truth_pub, *self._scan_pubs.values()]
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:
@@ -170,6 +171,7 @@ class WorldServer:
             live = sorted(self._live)
         views = sim.sense(live)
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
+        self._truth_pub.put(encode(sim.truth()))
         for vid in live:
             v = views[vid]
             self._scan_pubs[vid].put(encode(Scan(k, sim.t_sim_s, vid, v.pose, v.speed_mps, v.range_cm)))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.messages import LidarConfig, LightState, Mission, Pose
+from protocol.messages import LidarConfig, LightState, Mission, Pose, WorldTruth
 from world_server import driver, lidar
 from world_server.judge import Judge
 from world_server.physics import Physics
@@ -93,6 +93,13 @@ class Simulation:
         ego_view = views.get(ego)
         self._collider_in_ego_view = int(np.count_nonzero(ego_view.labels == col)) if ego_view else 0
         return views
+
+    def truth(self) -> WorldTruth:
+        """Every vehicle's true pose, speed and size now."""
+        boxes = self.physics.boxes(self.heights_m)
+        return WorldTruth(self.tick, self.t_sim_s, np.arange(len(boxes), dtype=np.int64),
+                          boxes[:, :3].astype(np.float32), np.asarray(self.physics.v, dtype=np.float32),
+                          boxes[:, 3:6].astype(np.float32))
 
     def step(self, commands: Mapping[int, tuple[float, float]], dead: Iterable[int] = (),
              ego_fused_xy: np.ndarray | None = None) -> None:

@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -42,6 +43,7 @@ LAUNCHER_GRACE_S = 30.0  # a launcher stops its processes within ~15 s of SIGINT
 LAUNCHER_SLACK_S = 120.0  # beyond the run's own --timeout-s: start-up and shutdown
 STDERR_TAIL_CHARS = 2000
 BIG_RESULT_CHARS = 1000  # outcome fields longer than this as JSON (the distance series) stay in outcome.json
+ALWAYS_KEPT = ("dead_agents",)  # kept however long: 36 dead agents are 1.6 kB, and they matter
 
 # ---------------------------------------------------------------------------- the matrix
 
@@ -70,6 +72,7 @@ class SweepSpec:
     seeds: tuple[int, ...] = (0,)
     duration_s: float = 20.0  # sim-time limit of each run
     timeout_s: float = 900.0  # wall-clock limit of each run (autocast run --timeout-s)
+    agent_timeout_s: float = 10.0  # wall time an agent may take for a tick before the world declares it dead
     scans: str = "none"  # LiDAR scans the recorder keeps; the report needs none of them
     mcap_limit_mb: float = 200.0  # a run's MCAP larger than this is deleted (EMP logs every point cloud)
 
@@ -166,12 +169,13 @@ def spec_from(values: Mapping[str, Any], name: str) -> SweepSpec:
         out["duration_s"] = params_from_dict({"duration_s": values.get("duration_s", 20.0)}).duration_s
     except ScenarioError as exc:
         raise SweepError(str(exc)) from None
-    for key in ("timeout_s", "mcap_limit_mb"):
+    for key in ("timeout_s", "agent_timeout_s", "mcap_limit_mb"):
         if key in values:
             v = values[key]
             ok = isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
-            if not ok or v < 0 or (key == "timeout_s" and v == 0):
-                raise SweepError(f"{key}: {v!r} is not a number {'> 0' if key == 'timeout_s' else '>= 0'}")
+            positive = key != "mcap_limit_mb"
+            if not ok or v < 0 or (positive and v == 0):
+                raise SweepError(f"{key}: {v!r} is not a number {'> 0' if positive else '>= 0'}")
             out[key] = float(v)
     if "scans" in values:
         if values["scans"] not in SCANS:
@@ -225,7 +229,7 @@ def narrowed(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
             raise SweepError(f"{axis}: {text!r} is not a comma-separated list of "
                              f"{'integers' if kind is int else 'numbers' if kind is float else 'names'}") from None
     for flag, key, kind in (("duration", "duration_s", float), ("timeout_s", "timeout_s", float),
-                            ("mcap_limit_mb", "mcap_limit_mb", float)):
+                            ("agent_timeout_s", "agent_timeout_s", float), ("mcap_limit_mb", "mcap_limit_mb", float)):
         text = getattr(args, flag)
         if text is not None:
             try:
@@ -260,13 +264,17 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 
 
 # Wall seconds of one run alone on the 2-core development machine, by connected vehicles
-# (scheme autocast, left_turn, --scans none, caches warm): start-up (launcher start to the
-# first tick: N + 3 Python processes importing numpy, numba and zenoh, agents loading their
-# kernels) and seconds per 100 ms tick (lock-step). Measured: docs/experiments.md.
+# (scheme autocast, caches warm, --scans none): start-up and shutdown (N + 3 Python
+# processes importing numpy, numba and zenoh at once, agents loading their kernels) and
+# seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
+# autocast's. How they were measured: docs/experiments.md.
 MODEL_STARTUP_S = {5: 6.0, 10: 8.0, 20: 13.0, 40: 24.0}
 MODEL_TICK_S = {5: 0.07, 10: 0.12, 20: 0.27, 40: 0.75}
+MODEL_SCHEME_TICK = {"single": 0.55, "lane": 0.55, "autocast": 1.0, "autocast-fptas": 1.0, "agnostic": 2.3,
+                     "emp": 4.0}
 TYPICAL_END_S = 13.0  # a run ends once the outcome is decided: median t_end_s of judged runs
 PARALLEL_GAIN = 1.0  # throughput of --jobs 2 over --jobs 1 for runs that share the machine
+MIN_CALIBRATION_RUNS = 3
 
 
 def _interp(table: Mapping[int, float], n: int) -> float:
@@ -288,11 +296,26 @@ def _interp(table: Mapping[int, float], n: int) -> float:
 def estimate_run_s(key: RunKey) -> float:
     """Wall seconds of one run alone: start-up + ticks x seconds per tick."""
     ticks = min(key.duration_s, TYPICAL_END_S) / 0.1
-    return _interp(MODEL_STARTUP_S, key.vehicles) + ticks * _interp(MODEL_TICK_S, key.vehicles)
+    tick_s = _interp(MODEL_TICK_S, key.vehicles) * MODEL_SCHEME_TICK.get(key.scheme, 1.0)
+    return _interp(MODEL_STARTUP_S, key.vehicles) + ticks * tick_s
 
 
-def estimate_wall_s(keys: Iterable[RunKey], jobs: int) -> float:
-    total = sum(estimate_run_s(k) for k in keys)
+def calibration(records: Iterable[dict[str, Any]]) -> tuple[float, int]:
+    """How much slower than the model this machine ran the sweep's judged runs so far:
+    the median of measured over modelled wall time (1.0 below ``MIN_CALIBRATION_RUNS``)."""
+    ratios = []
+    for r in records:
+        if r.get("status") == "judged" and r.get("wall_total_s"):
+            key = RunKey(**{f.name: r[f.name] for f in fields(RunKey)})
+            ratios.append(r["wall_total_s"] / estimate_run_s(key))
+    if len(ratios) < MIN_CALIBRATION_RUNS:
+        return 1.0, len(ratios)
+    ratios.sort()
+    return ratios[len(ratios) // 2], len(ratios)
+
+
+def estimate_wall_s(keys: Iterable[RunKey], jobs: int, scale: float = 1.0) -> float:
+    total = sum(estimate_run_s(k) for k in keys) * scale
     return total / (PARALLEL_GAIN if jobs > 1 else 1.0)
 
 
@@ -346,7 +369,7 @@ def record_of(key: RunKey, run_id: str, exit_code: int, stdout: str, stderr: str
                            "outcome": result.get("outcome") if result else None, "wall_total_s": round(wall_s, 2),
                            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     for k, v in (result or {}).items():
-        if k not in rec and len(json.dumps(v)) <= BIG_RESULT_CHARS:
+        if k not in rec and (k in ALWAYS_KEPT or len(json.dumps(v)) <= BIG_RESULT_CHARS):
             rec[k] = v
     rec.update(extra or {})
     if not judged:
@@ -423,6 +446,8 @@ class Progress:
         if rec["status"] == "judged":
             closest = rec.get("closest_distance_m")
             what = f"{rec['outcome']}" + (f"  closest {closest:.2f} m" if isinstance(closest, (int, float)) else "")
+            if rec.get("dead_agents"):
+                what += f"  ({len(rec['dead_agents'])} agents declared dead: the machine is overloaded?)"
         else:
             what = f"FAILED (exit {rec['exit_code']}): {rec['error']['failure']}"
         line = f"[{self.done}/{self.total}] {rec['run_key']}: {what}  ({rec['wall_total_s']:.0f} s)"
@@ -537,6 +562,7 @@ class Sweep:
         out_path, err_path = self.logs_dir / f"{run_id}.out", self.logs_dir / f"{run_id}.err"
         argv = [sys.executable, "-m", "deploy.cli", "run", *key.run_flags(), "--json", "--out", str(self.runs_dir),
                 "--run-id", run_id, "--scans", self.spec.scans, "--timeout-s", repr(self.spec.timeout_s),
+                "--agent-timeout-s", repr(self.spec.agent_timeout_s),
                 "--log-level", "WARNING", *(["--no-warm-up"] if self.warm else [])]
         with open(out_path, "wb") as out, open(err_path, "wb") as err:
             proc = subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL, start_new_session=True,
@@ -667,6 +693,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     nar.add_argument("--seeds", metavar="N,...")
     nar.add_argument("--duration", metavar="S", help="sim seconds per run (default 20)")
     nar.add_argument("--timeout-s", metavar="S", help="wall-clock limit per run (default 900)")
+    nar.add_argument("--agent-timeout-s", metavar="S", help="wall time an agent may take for one tick before the "
+                     "world declares it dead (default 10; raise it on a loaded machine)")
     nar.add_argument("--scans", help="LiDAR scans each run's recorder keeps: none (default) | ego | all")
     nar.add_argument("--mcap-limit-mb", metavar="MB", help="delete a run's MCAP beyond this size (default 200)")
     ap.add_argument("--out", type=Path, help="the sweep directory (default runs/sweeps/<preset or file name>); "
@@ -680,26 +708,29 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], recorded: int, out: Path, jobs: int,
-              vehicle_budget: int) -> str:
+def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: dict[str, dict[str, Any]], out: Path,
+              jobs: int, vehicle_budget: int) -> str:
     dims = " x ".join(f"{len(getattr(spec, a))} {AXIS_LABEL[a]}{'s' if len(getattr(spec, a)) != 1 else ''}"
                       for a in AXES)
     lines = [f"plan {spec.name!r}: {len(keys)} runs = {dims}",
              f"  scenarios {', '.join(spec.scenarios)}; collider speeds {', '.join(f'{v:g}' for v in spec.collider_speeds_kmh)} km/h;"
              f" deltas {', '.join(f'{v:g}' for v in spec.deltas_s)} s; vehicles {', '.join(map(str, spec.vehicles))};"
              f" schemes {', '.join(spec.schemes)}; seeds {', '.join(map(str, spec.seeds))}; {spec.duration_s:g} s of sim time",
-             f"  {'vehicles':>8} {'runs':>6} {'to run':>7} {'est. per run':>13} {'est. total':>11}"]
+             f"  {'vehicles':>8} {'runs':>6} {'to run':>7} {'est. per run':>13} {'est. to run':>12}"]
+    scale, measured = calibration(records.values())
     for n in sorted(spec.vehicles):
         mine = [k for k in todo if k.vehicles == n]
-        per = estimate_run_s(next(k for k in keys if k.vehicles == n))
+        per = scale * statistics.fmean(estimate_run_s(k) for k in keys if k.vehicles == n)
         lines.append(f"  {n:>8} {sum(k.vehicles == n for k in keys):>6} {len(mine):>7} {per:>11.0f} s"
-                     f" {_duration(sum(estimate_run_s(k) for k in mine)):>11}")
-    wall = estimate_wall_s(todo, jobs)
+                     f" {_duration(scale * sum(estimate_run_s(k) for k in mine)):>12}")
+    wall = estimate_wall_s(todo, jobs, scale)
     how = f"--jobs {jobs}, vehicle budget {vehicle_budget}" if jobs > 1 else "--jobs 1"
     hours = f"{wall / 3600:.1f} h, " if wall >= 3600 else ""
+    basis = (f"the model x {scale:.2f}, the median measured/modelled of the {measured} runs recorded here"
+             if measured >= MIN_CALIBRATION_RUNS else "model: start-up + ticks x s/tick by vehicle count and scheme")
+    recorded = sum(k.name in records for k in keys)
     lines += [f"  already recorded in {out / RESULTS}: {recorded}; to run: {len(todo)}",
-              f"  estimated wall time: {_duration(wall)} ({hours}{how}; "
-              "model: start-up + ticks x s/tick by vehicle count, docs/experiments.md)"]
+              f"  estimated wall time: {_duration(wall)} ({hours}{how}; {basis}; docs/experiments.md)"]
     return "\n".join(lines)
 
 
@@ -728,16 +759,15 @@ def main(argv: list[str] | None = None) -> int:
     records = latest(read_results(out / RESULTS))
     todo = [k for k in keys if k.name not in records
             or (args.retry_failed and records[k.name]["status"] == "failed")]
-    recorded = sum(k.name in records for k in keys)
-    text = plan_text(spec, keys, todo, recorded, out, args.jobs, args.vehicle_budget)
+    text = plan_text(spec, keys, todo, records, out, args.jobs, args.vehicle_budget)
     if args.dry_run:
         print(text)
         return EXIT_OK
-    return run_sweep(spec, keys, todo, out, args, text)
+    return run_sweep(spec, keys, todo, out, args, text, calibration(records.values())[0])
 
 
 def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path, args: argparse.Namespace,
-              text: str) -> int:
+              text: str, scale: float) -> int:
     out.mkdir(parents=True, exist_ok=True)
     lock = open(out / LOCK, "w")
     try:
@@ -751,7 +781,7 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         sweep.logs_dir.mkdir(exist_ok=True)
         plan = {"spec": asdict(spec), "runs": [{"run_key": k.name, **asdict(k)} for k in keys],
                 "jobs": args.jobs, "vehicle_budget": args.vehicle_budget, "to_run": len(todo),
-                "estimated_wall_s": round(estimate_wall_s(todo, args.jobs)), "git_revision": git_revision(),
+                "estimated_wall_s": round(estimate_wall_s(todo, args.jobs, scale)), "git_revision": git_revision(),
                 "written_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:]}
         (out / PLAN).write_text(json.dumps(plan, indent=1) + "\n")
         print(text, file=sys.stderr)

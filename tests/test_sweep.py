@@ -116,11 +116,13 @@ KEY = RunKey("red_light", 5, 20.0, 1.0, "autocast", 0, 20.0)
 
 def test_record_of_a_judged_run_keeps_scalars_not_the_series():
     outcome = {"outcome": "near_miss", "closest_distance_m": 1.5, "reaction_time_s": None, "scenario": "red_light",
-               "vehicles": 5, "distance_series_m": [[0.1 * i, 50.0] for i in range(200)], "dead_agents": {}}
+               "vehicles": 5, "distance_series_m": [[0.1 * i, 50.0] for i in range(200)],
+               "dead_agents": {str(v): "no command for tick 80 within 10.0 s" for v in range(40)}}
     rec = sweep.record_of(KEY, KEY.name, 1, "outcome: near_miss ...\n" + json.dumps(outcome) + "\n", "", 12.3)
     assert rec["status"] == "judged" and rec["outcome"] == "near_miss" and rec["exit_code"] == 1
     assert rec["run_key"] == KEY.name and rec["scheme"] == "autocast" and rec["closest_distance_m"] == 1.5
     assert "distance_series_m" not in rec and "error" not in rec
+    assert len(rec["dead_agents"]) == 40  # long, but kept: dead agents change outcomes
 
 
 def test_record_of_a_failed_run_keeps_its_error():

@@ -30,7 +30,7 @@ GROUND = -1
 _NO_RETURN = -2  # internal label of a ray that returns nothing
 _MAX_CM = 65535  # uint16 range image: 655 m, far beyond any LidarConfig.range_m we use
 
-# columns of a prepared box row (see _prepare_boxes)
+# columns of a prepared box row (see prepare_boxes)
 _CX, _CY, _COS, _SIN, _HALF_L, _HALF_W, _HEIGHT = range(7)
 
 
@@ -80,7 +80,7 @@ def _scratch(n_az: int, n_beams: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     )
 
 
-def _prepare_boxes(boxes: np.ndarray) -> np.ndarray:
+def prepare_boxes(boxes: np.ndarray) -> np.ndarray:
     """World boxes (m, 6) -> (m, 7) rows [cx, cy, cos yaw, sin yaw, L/2, W/2, H], once per tick."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 6)
     prepared = np.empty((b.shape[0], 7), dtype=np.float64)
@@ -285,7 +285,7 @@ class Sweep(NamedTuple):
     range_cm: np.ndarray  # uint16 (steps, beams): horizontal distance per ray in cm, 0 = none
 
 
-def _scan_prepared(
+def scan_prepared(
     prepared: np.ndarray, pose: np.ndarray, sensor_z_m: float, cfg: LidarConfig, skip_box: int
 ) -> Sweep:
     cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, first_ground = _tables(
@@ -330,7 +330,7 @@ def scan(
     contains the sensor is ignored.
     """
     pose = np.asarray(sensor_xy_yaw, dtype=np.float64).reshape(3)
-    points, labels, _ = _scan_prepared(_prepare_boxes(boxes), pose, sensor_z_m, cfg, skip_box)
+    points, labels, _ = scan_prepared(prepare_boxes(boxes), pose, sensor_z_m, cfg, skip_box)
     return points, labels
 
 
@@ -347,14 +347,14 @@ def scan_many(
     Sweep ``i``'s points and labels equal
     ``scan(boxes, sensors_xy_yaw[i], sensors_z_m[i], cfg, skip_boxes[i])``.
     """
-    prepared = _prepare_boxes(boxes)
+    prepared = prepare_boxes(boxes)
     poses = np.asarray(sensors_xy_yaw, dtype=np.float64).reshape(-1, 3)
     heights = np.asarray(sensors_z_m, dtype=np.float64).reshape(-1)
     skips = np.asarray(skip_boxes).reshape(-1)
     if not poses.shape[0] == heights.shape[0] == skips.shape[0]:
         raise ValueError("sensors_xy_yaw, sensors_z_m and skip_boxes must have one row per sensor")
     return [
-        _scan_prepared(prepared, poses[i], heights[i], cfg, int(skips[i]))
+        scan_prepared(prepared, poses[i], heights[i], cfg, int(skips[i]))
         for i in range(poses.shape[0])
     ]
 

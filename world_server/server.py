@@ -169,12 +169,10 @@ class WorldServer:
         k = sim.tick
         with self._cv:
             live = sorted(self._live)
-        views = sim.sense(live)
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
         self._truth_pub.put(encode(sim.truth()))
-        for vid in live:
-            v = views[vid]
-            self._scan_pubs[vid].put(encode(Scan(k, sim.t_sim_s, vid, v.pose, v.speed_mps, v.range_cm)))
+        for v in sim.sense_each(live):  # each scan goes out as soon as it is cast: its agent starts at once
+            self._scan_pubs[v.vid].put(encode(Scan(k, sim.t_sim_s, v.vid, v.pose, v.speed_mps, v.range_cm)))
         if self.realtime:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
         else:

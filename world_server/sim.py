@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,21 +78,29 @@ class Simulation:
 
     def sense(self, vids: Iterable[int]) -> dict[int, Sensed]:
         """LiDAR scans of ``vids`` plus the collider's (kept for its driver)."""
+        return {v.vid: v for v in self.sense_each(vids)}
+
+    def sense_each(self, vids: Iterable[int]) -> Iterator[Sensed]:
+        """``sense``, one vehicle at a time as each scan is cast, in the order of ``vids``
+        (the world publishes each scan at once, so agents start while it casts the rest).
+        The collider's scan, for its driver, is cast last; consume the whole iterator."""
         col = self.scenario.collider.vid
-        wanted = sorted(set(vids) | {col})
+        wanted = [v for v in dict.fromkeys(vids) if v != col] + [col]
         boxes = np.vstack([self.physics.boxes(self.heights_m), self.scenario.roadmap.buildings])
         poses = self.physics.poses()
-        idx = np.array(wanted)
-        results = lidar.scan_many(boxes, poses[idx], self.mount_m[idx], self.lidar_cfg, idx)
-        views = {}
-        for vid, sweep in zip(wanted, results):
-            x, y, yaw = poses[vid]
-            views[vid] = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), *sweep)
-        self._collider_view = views.pop(col)
+        prepared = lidar.prepare_boxes(boxes)
         ego = self.scenario.ego.vid
-        ego_view = views.get(ego)
-        self._collider_in_ego_view = int(np.count_nonzero(ego_view.labels == col)) if ego_view else 0
-        return views
+        self._collider_in_ego_view = 0
+        for vid in wanted:
+            x, y, yaw = poses[vid]
+            sweep = lidar.scan_prepared(prepared, poses[vid], float(self.mount_m[vid]), self.lidar_cfg, vid)
+            view = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), *sweep)
+            if vid == col:
+                self._collider_view = view
+                continue
+            if vid == ego:
+                self._collider_in_ego_view = int(np.count_nonzero(view.labels == col))
+            yield view
 
     def truth(self) -> WorldTruth:
         """Every vehicle's true pose, speed and size now."""

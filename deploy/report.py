@@ -276,6 +276,11 @@ def _n(count: int, noun: str) -> str:
     return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
+def _density_limits(densities: Sequence[int]) -> tuple[float, float]:
+    pad = 0.08 * ((max(densities) - min(densities)) or 10)
+    return min(densities) - pad, max(densities) + pad
+
+
 def _dodge(xs: Sequence[int], i: int, k: int, densities: Sequence[int]) -> list[float]:
     """Shift scheme i of k sideways by a little, so equal values do not hide each other."""
     span = (max(densities) - min(densities)) or 10
@@ -340,6 +345,7 @@ def plot_safe_vs_density(records: Sequence[dict[str, Any]], path: Path) -> None:
             ax.plot(_dodge(xs, i, len(schemes), densities), ys, "-", marker=SCHEME_MARKER.get(s, "o"),
                     color=SCHEME_COLOR.get(s), label=s, lw=2, alpha=0.85)
         ax.set_xticks(densities)
+        ax.set_xlim(*_density_limits(densities))
         ax.set_ylim(-3, 103)
         ax.set_xlabel("connected vehicles in range")
         ax.set_ylabel("safe passage (% of judged runs)")
@@ -374,6 +380,7 @@ def plot_visibility(records: Sequence[dict[str, Any]], path: Path) -> None:
             b.plot(_dodge(xs, i, len(schemes), densities), [table[(s, n)].points_mean for n in xs], "-", **style)
         for ax in (a, b):
             ax.set_xticks(densities)
+            ax.set_xlim(*_density_limits(densities))
             ax.set_xlabel("connected vehicles in range")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)

@@ -108,6 +108,19 @@ def test_estimate_interpolates_the_measured_model(monkeypatch):
     assert sweep.estimate_run_s(short) == pytest.approx(30.0 + 50 * 0.5)
 
 
+def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
+    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 10: 5.0})
+    monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 10: 0.1})
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", 10.0)  # every autocast run: 5 + 100 x 0.1 = 15 s
+    key = RunKey("left_turn", 5, 30.0, 0.0, "autocast", 0, 20.0)
+    measured = [{"run_key": "x", "status": "judged", "scenario": "left_turn", "vehicles": 5, "collider_speed_kmh": 30.0, "delta_s": 0.0,
+                 "scheme": "autocast", "seed": s, "duration_s": 20.0, "wall_total_s": w}
+                for s, w in enumerate((30.0, 45.0, 60.0))]
+    assert sweep.calibration(measured) == (pytest.approx(3.0), 3)  # median of 2x, 3x, 4x
+    assert sweep.calibration(measured[:2]) == (1.0, 2)  # too few to trust
+    assert sweep.estimate_wall_s([key, key], jobs=1, scale=3.0) == pytest.approx(90.0)
+
+
 # ---------------------------------------------------------------------------- records
 
 

@@ -687,7 +687,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     nar = ap.add_argument_group("narrow the matrix (comma-separated; replaces the preset's axis)")
     nar.add_argument("--scenarios")
     nar.add_argument("--collider-speeds", metavar="KMH,...")
-    nar.add_argument("--deltas", metavar="S,...")
+    nar.add_argument("--deltas", metavar="S,...", help="--deltas=-1,0,1: a list starting with a minus needs the =")
     nar.add_argument("--vehicles", metavar="N,...")
     nar.add_argument("--schemes")
     nar.add_argument("--seeds", metavar="N,...")

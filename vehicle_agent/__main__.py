@@ -212,9 +212,17 @@ class Pipeline:
         return [r.payload for r in link.exchange_data(scan.tick, scan.t_sim_s, txs)]
 
     def _emp(self, scan: Scan) -> np.ndarray | None:
-        """Upload our Voronoi segment of the full scan; return the relay's segments' points
-        (world frame), which perception then sees as if our own (EMP merges point clouds)."""
+        """Upload our Voronoi segment of the scan; return the relay's segments' points
+        (world frame), which perception then sees as if our own (EMP merges point clouds).
+
+        Ground returns are left out of the segment, as a point-cloud sharing system
+        removes them before it transmits. A receiver's perception takes obstacles only
+        from points above the ground, so they carry nothing it uses. With them, one
+        vehicle's segment (~600 KB) overflowed the relay's whole 100 ms and EMP
+        delivered nothing at any density. Without them a segment is ~140 KB at 5
+        vehicles (docs/channel.md)."""
         world = scan_to_world(scan, self.mission.lidar)
+        world = world[world[:, 2] > self.agent.dataplane.spec.ground_clear_m]
         own_xy = np.array([scan.pose.x_m, scan.pose.y_m])
         others = np.array([xy for v, xy in sorted(self.emp_sites.items()) if v != self.mission.vid]).reshape(-1, 2)
         segment = world[voronoi_segment(world[:, :2], own_xy, others)]

@@ -213,6 +213,16 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
+def path_until(path: np.ndarray, s: np.ndarray, s_end: float) -> np.ndarray:
+    """``path`` (with arc lengths ``s``) cut at arc length ``s_end``; at least two points
+    (a stub along the first segment when ``s_end`` is about 0)."""
+    s_end = max(s_end, 0.5)
+    if s_end >= s[-1] or len(path) < 2:
+        return path
+    keep = int(np.searchsorted(s, s_end, side="right"))
+    return np.vstack([path[:keep], point_at(path, float(s_end)).reshape(1, 2)])
+
+
 @dataclass
 class PathPlanner:
     route: np.ndarray
@@ -465,5 +475,11 @@ class Planner:
                 if speed_mps < 0.3:
                     accel = -spec.max_brake_mps2  # hold
         traj = trajectory_of(path, speed_mps, accel, cruise, t_now_s, stop_at if braking else None)
+        if stop_at is not None:
+            # steer only along the path up to the stop point: pure pursuit looking past it
+            # cuts the corner into what we may stop for (measured: an overtaking ego that
+            # knew of the oncoming car drifted 0.7 m into its lane before it braked, and the
+            # two blocked each other)
+            path = path_until(path, s, stop_at + cfg.stop_buffer_m)
         self.last = Plan(path, float(accel), traj, conflict, braking)
         return self.last

@@ -7,11 +7,11 @@ scheduling instances from the same profile then agree on B, T_n and N.
 
 from __future__ import annotations
 
-import importlib
 
 from dataclasses import dataclass, field
 
 from channel_proxy.loss import PrrModel
+from protocol import plugins
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,12 +61,11 @@ def get_profile(name: str) -> ChannelProfile:
     """A registered profile, or the ``ChannelProfile`` at an import path ``package.module:NAME``."""
     if name in PROFILES:
         return PROFILES[name]
-    if ":" in name:
-        module, _, attr = name.partition(":")
+    if plugins.is_import_path(name):
         try:
-            profile = getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as exc:
-            raise KeyError(f"cannot load channel profile {name!r}: {exc}") from None
+            profile = plugins.load(name)
+        except plugins.PluginError as exc:
+            raise KeyError(str(exc)) from None
         if not isinstance(profile, ChannelProfile):
             raise KeyError(f"{name!r} is a {type(profile).__name__}, not a ChannelProfile")
         return profile

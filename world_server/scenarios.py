@@ -21,7 +21,6 @@ user's scenario runs in the world process without editing this file
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import tomllib
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol import plugins
 from protocol.messages import VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
 from world_server.roadmap import RoadMap, intersection, straight_road
@@ -204,12 +204,11 @@ def builder_of(name: Any) -> Builder:
     """The builder of a registered name or of an import path ``package.module:function``."""
     if isinstance(name, str) and name in _BUILDERS:
         return _BUILDERS[name]
-    if isinstance(name, str) and ":" in name:
-        module, _, attr = name.partition(":")
+    if plugins.is_import_path(name):
         try:
-            builder = getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ScenarioError(f"scenario: cannot load {name!r}: {exc}") from None
+            builder = plugins.load(name)
+        except plugins.PluginError as exc:
+            raise ScenarioError(f"scenario: {exc}") from None
         if not callable(builder):
             raise ScenarioError(f"scenario: {name!r} is not a function")
         return builder

@@ -8,9 +8,9 @@ change to the agent at all.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 
+from protocol import plugins
 from vehicle_agent.scheduler.instance import Instance, Schedule
 from vehicle_agent.scheduler.state import SchedulerState
 
@@ -46,12 +46,11 @@ def get(name: str) -> SchedulerFn:
     fn = _SCHEDULERS.get(name)
     if fn is not None:
         return fn
-    if ":" in name:
-        module, _, attr = name.partition(":")
+    if plugins.is_import_path(name):
         try:
-            fn = getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as e:
-            raise UnknownSchedulerError(f"cannot load scheduler {name!r}: {e}") from e
+            fn = plugins.load(name)
+        except plugins.PluginError as e:
+            raise UnknownSchedulerError(str(e)) from None
         if not callable(fn):
             raise UnknownSchedulerError(f"scheduler {name!r} is not callable")
         return fn

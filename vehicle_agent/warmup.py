@@ -3,13 +3,17 @@
 With 40 agents starting at once on 2 cores, loading kernels from the numba cache at
 first use made the first tick take longer than the world's per-tick timeout. Running
 one synthetic interval through every stage before the agent declares its liveliness
-token moves that cost into the startup wait, which the world allows for.
+token moves that cost into the startup wait, which the world allows for. The synthetic
+messages go through the codec, as real ones do: decoded arrays are read-only, which
+numba types apart from writable ones, so a kernel warmed on a writable array was
+loaded a second time at the first real tick.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
@@ -22,12 +26,12 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     x, y = float(m.route[0, 0]), float(m.route[0, 1])
     d = m.route[1] - m.route[0]
     yaw = float(np.arctan2(d[1], d[0]))
-    scan = Scan(0, 0.0, m.vid, Pose(x, y, yaw), m.cruise_speed_mps, synthetic_ranges(m.lidar))
+    scan = _as_received(Scan(0, 0.0, m.vid, Pose(x, y, yaw), m.cruise_speed_mps, synthetic_ranges(m.lidar)))
     view = agent.perceive(scan)
     other = m.vid + 1
-    other_msg = ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
-                           np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
-                           agent.dataplane.object_map(view, []), np.array([m.vid], np.int64))
+    other_msg = _as_received(ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
+                                        np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
+                                        agent.dataplane.object_map(view, []), np.array([m.vid], np.int64)))
     agent.dataplane.neighbors.update([other_msg])
     own = agent.control_message(view, scan, heard=[other])
     slots = plan_transmissions(decide(m.vid, 0, own, [other_msg], agreement), agreement)
@@ -37,6 +41,11 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None
+
+
+def _as_received(msg):
+    """The message as a subscriber gets it: through the wire format."""
+    return decode(encode(msg), type(msg))
 
 
 def synthetic_ranges(lidar: LidarConfig) -> np.ndarray:

@@ -1,0 +1,57 @@
+"""The agent's warm-up loads every numba kernel a real interval uses, with the types a
+real interval gives them, so the first tick compiles and loads nothing."""
+
+from __future__ import annotations
+
+import sys
+
+from numba.core.dispatcher import Dispatcher
+
+from channel_proxy.profiles import get_profile
+from protocol.codec import decode, encode
+from protocol.messages import ControlMsg, Scan
+from vehicle_agent.agent import Agent
+from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.agreement import plan as plan_transmissions
+from vehicle_agent.warmup import warm_up
+from world_server.scenarios import ScenarioParams
+from world_server.sim import Simulation
+
+
+def kernel_signatures() -> dict[str, int]:
+    """How many compiled signatures each numba kernel of the agent's modules has."""
+    out = {}
+    for name, module in list(sys.modules.items()):
+        if not name.startswith("vehicle_agent"):
+            continue
+        for attr, value in vars(module).items():
+            if isinstance(value, Dispatcher):
+                out[f"{name}.{attr}"] = len(value.signatures)
+    return out
+
+
+def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
+    sim = Simulation(ScenarioParams(scenario="left_turn", vehicles=5, delta_s=0.0, seed=0))
+    mapmsg = sim.scenario.roadmap.to_msg()
+    agreement = AgreementConfig.from_profile(get_profile("lte-direct"), scheduler="autocast")
+    ego, truck = (Agent(sim.mission(vid), mapmsg) for vid in (0, 1))
+    warm_up(ego, agreement)
+    warm_up(truck, agreement)
+    before = kernel_signatures()
+    assert before, "no numba kernel found in the agent's modules"
+
+    views = sim.sense(sim.connected_vids)
+    scans = {vid: decode(encode(Scan(sim.tick, sim.t_sim_s, vid, views[vid].pose, views[vid].speed_mps,
+                                     views[vid].range_cm)), Scan) for vid in (0, 1)}
+    ego_view, truck_view = ego.perceive(scans[0]), truck.perceive(scans[1])
+    truck_msg = decode(encode(truck.control_message(truck_view, scans[1], heard=[0])), ControlMsg)
+    ego.dataplane.neighbors.update([truck_msg])
+    own = ego.control_message(ego_view, scans[0], heard=[1])
+    plan_transmissions(decide(0, sim.tick, own, [truck_msg], agreement), agreement)
+    payloads = truck.dataplane.payloads(truck_view, [t.track_id for t in truck_view.tracks])
+    assert payloads, "the truck should see something to share"
+    ego.drive(ego_view, ego.fuse(ego_view, list(payloads.values())), scans[0])
+
+    after = kernel_signatures()
+    grown = {k: (before.get(k, 0), n) for k, n in after.items() if n > before.get(k, 0)}
+    assert not grown, f"kernels compiled or loaded at the first real tick (before, after): {grown}"

@@ -11,7 +11,7 @@ from vehicle_agent.frames import scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import ABOVE, DrivableRaster, GridSpec, build_grid, extract_objects
 from vehicle_agent.spatial import relevance, visibility, visible_share
-from vehicle_agent.tracking import Tracker
+from vehicle_agent.tracking import Tracker, _share_in
 from world_server import lidar
 from world_server.geometry import box_corners
 
@@ -86,6 +86,18 @@ def test_tracking_keeps_ids_and_estimates_velocity():
     moving = max(vel.values(), key=lambda v: np.hypot(*v))
     assert moving == pytest.approx([10.0, 0.0], abs=1.0)
     assert min(np.hypot(*v) for v in vel.values()) == 0.0  # the parked car does not drift
+
+
+def test_share_of_cells_kept_matches_isin():
+    rng = np.random.default_rng(3)
+    past = np.unique(rng.integers(0, 200, 120))
+    parts = [np.unique(rng.integers(0, 260, n)) for n in (7, 0, 30, 1, 12)]  # one detection's cells each
+    counts = np.array([len(p) for p in parts])
+    ids = np.concatenate(parts)
+    reference = [np.isin(p, past).mean() if len(p) else 0.0 for p in parts]
+    assert _share_in(ids, counts, past) == pytest.approx(reference)
+    assert _share_in(ids, counts, None) is None
+    assert _share_in(ids, counts, np.zeros(0, np.int64)).tolist() == [0.0] * len(counts)
 
 
 def _quad(cx, cy, yaw, length, width):

@@ -61,16 +61,17 @@ class Tracker:
 
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
         """Associate this tick's detections; returns the tracks seen this tick, by id."""
-        occupied = np.unique(np.concatenate([_cell_ids(d.cells) for d in detections])) if detections else \
-            np.zeros(0, dtype=np.int64)
-        self._history.append(occupied)
+        ids = [_cell_ids(d.cells) for d in detections]
+        all_ids = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
+        self._history.append(np.unique(all_ids))  # sorted: membership is a binary search
         past = self._history[0] if len(self._history) > MOTION_WINDOW else None
+        stayed = _share_in(all_ids, np.array([len(i) for i in ids], dtype=np.int64), past)
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
         predicted = np.array([tr.predict(t_sim_s) for tr in self.tracks]).reshape(-1, 2)
         pairs = _associate(predicted, centroids, GATE_M)
         matched_tracks, matched_dets = set(), set()
         for ti, di in pairs:
-            self._correct(self.tracks[ti], detections[di], t_sim_s, past)
+            self._correct(self.tracks[ti], detections[di], t_sim_s, None if stayed is None else stayed[di])
             matched_tracks.add(ti)
             matched_dets.add(di)
         for ti, tr in enumerate(self.tracks):
@@ -84,14 +85,14 @@ class Tracker:
         return sorted((tr for tr in self.tracks if tr.missed == 0), key=lambda tr: tr.track_id)
 
     @staticmethod
-    def _correct(tr: Track, det: DetectedObject, t_sim_s: float, past_cells: np.ndarray | None) -> None:
+    def _correct(tr: Track, det: DetectedObject, t_sim_s: float, stayed: float | None) -> None:
+        """``stayed``: the share of the detection's cells it also occupied MOTION_WINDOW ago."""
         dt = max(t_sim_s - tr.t_sim_s, 1e-3)
         predicted = tr.xy + tr.filtered_velocity * dt
         residual = det.centroid[:2] - predicted
         tr.xy = predicted + ALPHA * residual
         tr.filtered_velocity = tr.filtered_velocity + (BETA / dt) * residual
-        moved = past_cells is not None and \
-            np.isin(_cell_ids(det.cells), past_cells, assume_unique=False).mean() < STATIC_OVERLAP
+        moved = stayed is not None and stayed < STATIC_OVERLAP
         if moved and np.hypot(*tr.filtered_velocity) >= STILL_MPS:
             tr.velocity = tr.filtered_velocity.copy()
         else:
@@ -105,6 +106,19 @@ class Tracker:
 def _cell_ids(cells: np.ndarray) -> np.ndarray:
     """One int64 per global lattice cell (i, j)."""
     return cells[:, 0].astype(np.int64) * 1_000_003 + cells[:, 1].astype(np.int64)
+
+
+def _share_in(ids: np.ndarray, counts: np.ndarray, past: np.ndarray | None) -> np.ndarray | None:
+    """Per detection (``counts`` consecutive ``ids`` each), the share of its cells in the
+    sorted ``past``; None without a past."""
+    if past is None:
+        return None
+    if len(past) == 0 or len(ids) == 0:
+        return np.zeros(len(counts))
+    pos = np.minimum(np.searchsorted(past, ids), len(past) - 1)
+    hit = past[pos] == ids
+    owner = np.repeat(np.arange(len(counts)), counts)
+    return np.bincount(owner, weights=hit, minlength=len(counts)) / np.maximum(counts, 1)
 
 
 def _associate(a: np.ndarray, b: np.ndarray, gate: float) -> list[tuple[int, int]]:

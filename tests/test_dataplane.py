@@ -9,7 +9,8 @@ from protocol.codec import MalformedMessage
 from protocol.messages import LidarConfig, Pose, Scan
 from vehicle_agent.frames import scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
-from vehicle_agent.perception import ABOVE, DrivableRaster, GridSpec, build_grid, extract_objects
+from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _merge_shadowed,
+                                      _object_stats, build_grid, extract_objects, label_components)
 from vehicle_agent.spatial import relevance, visibility, visible_share
 from vehicle_agent.tracking import Tracker, _share_in
 from world_server import lidar
@@ -86,6 +87,44 @@ def test_tracking_keeps_ids_and_estimates_velocity():
     moving = max(vel.values(), key=lambda v: np.hypot(*v))
     assert moving == pytest.approx([10.0, 0.0], abs=1.0)
     assert min(np.hypot(*v) for v in vel.values()) == 0.0  # the parked car does not drift
+
+
+def test_object_stats_of_a_rotated_rectangle():
+    """Points on the outline of a 4 x 2 m rectangle turned 30 degrees, centred at (5, -3),
+    1 m high; an empty label in between gets zeros."""
+    u = np.concatenate([np.linspace(-2, 2, 41), np.linspace(-2, 2, 41), np.full(21, -2.0), np.full(21, 2.0)])
+    v = np.concatenate([np.full(41, -1.0), np.full(41, 1.0), np.linspace(-1, 1, 21), np.linspace(-1, 1, 21)])
+    th = np.radians(30.0)
+    pts = np.stack([5 + u * np.cos(th) - v * np.sin(th), -3 + u * np.sin(th) + v * np.cos(th), np.ones_like(u)], 1)
+    mean, yaw, u_lo, u_hi, v_lo, v_hi, z = _object_stats(pts, np.array([0, 0, len(pts)]))
+    assert mean[0].tolist() == [0.0, 0.0] and u_lo[0] == u_hi[0] == 0.0
+    assert mean[1] == pytest.approx([5.0, -3.0]) and z[1] == pytest.approx(1.0)
+    assert yaw[1] == pytest.approx(th)
+    assert (u_hi[1] - u_lo[1], v_hi[1] - v_lo[1]) == pytest.approx((4.0, 2.0))
+
+
+def _two_parts(between: int) -> Grid:
+    """Seen from the origin along +x: a car's rear face (x 10-11 m) and, 2 m behind it,
+    its roof (x 13-14 m), |y| <= 1 m; the cells in between set to ``between``."""
+    spec = GridSpec(half_extent_m=20.0)
+    n = spec.cells
+    i0 = j0 = -n // 2
+    state = np.full((n, n), EMPTY, dtype=np.uint8)
+    cols = lambda x0, x1: slice(int(x0 / spec.cell_m) - i0, int(x1 / spec.cell_m) - i0)  # noqa: E731
+    rows = slice(int(-1 / spec.cell_m) - j0, int(1 / spec.cell_m) - j0)
+    state[rows, cols(11, 13)] = between
+    state[rows, cols(10, 11)] = state[rows, cols(13, 14)] = ABOVE
+    return Grid(spec, i0, j0, state, np.ones((n, n), dtype=bool))
+
+
+@pytest.mark.parametrize("between, parts", [(EMPTY, 1), (GROUND, 2)])
+def test_a_part_in_anothers_shadow_merges_only_across_unseen_cells(between, parts):
+    grid = _two_parts(between)
+    labels, k = label_components(grid.state == ABOVE, 1)
+    assert k == 2
+    merged, k = _merge_shadowed(labels, k, grid, (0.0, 0.0))
+    assert k == parts and sorted(np.unique(merged).tolist()) == list(range(parts + 1))
+    assert np.array_equal(merged > 0, labels > 0)
 
 
 def test_share_of_cells_kept_matches_isin():

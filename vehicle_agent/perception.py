@@ -204,37 +204,14 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     if sensor_xy is not None and k > 1:
         labels, k = _merge_shadowed(labels, k, grid, sensor_xy)
     flat_labels = labels.ravel()
-    above = np.flatnonzero((cell_idx >= 0) & (world[:, 2] > grid.spec.ground_clear_m))
-    point_label = flat_labels[cell_idx[above]].astype(np.int16)  # int16: numpy radix-sorts it
-    keep = point_label > 0
-    by_label = np.argsort(point_label[keep], kind="stable")
-    order = above[keep][by_label]
-    bounds = np.searchsorted(point_label[keep][by_label], np.arange(1, k + 2))
-    flat_cells = np.flatnonzero(flat_labels)
-    cell_label = flat_labels[flat_cells]
-    by_cell_label = np.argsort(cell_label, kind="stable")
-    cell_order = flat_cells[by_cell_label]
-    cell_bounds = np.searchsorted(cell_label[by_cell_label], np.arange(1, k + 2))
-    # per-object statistics at once, over the points sorted by label (no per-point loop)
+    order, bounds = _group_by_label(cell_idx, world[:, 2] > grid.spec.ground_clear_m, flat_labels, k)
+    cell_order, cell_bounds = _group_by_label(np.arange(n * n), flat_labels > 0, flat_labels, k)
     pts = world[order]
+    mean, yaw, u_lo, u_hi, v_lo, v_hi, z_mean = _object_stats(pts, bounds)
     counts = np.diff(bounds)
-    starts = bounds[:-1]
     nonempty = counts > 0
-    lab_of_point = np.repeat(np.arange(k), counts)
-    xy = pts[:, :2]
-    mean = np.add.reduceat(xy, starts[nonempty], axis=0) / counts[nonempty, None]
-    d = xy - mean[np.cumsum(nonempty)[lab_of_point] - 1]
-    sxx = np.add.reduceat(d[:, 0] * d[:, 0], starts[nonempty])
-    syy = np.add.reduceat(d[:, 1] * d[:, 1], starts[nonempty])
-    sxy = np.add.reduceat(d[:, 0] * d[:, 1], starts[nonempty])
-    yaw = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # principal axis of the 2x2 covariance
-    idx = np.cumsum(nonempty)[lab_of_point] - 1
-    c, s_ = np.cos(yaw)[idx], np.sin(yaw)[idx]
-    u = d[:, 0] * c + d[:, 1] * s_
-    v = -d[:, 0] * s_ + d[:, 1] * c
-    u_lo, u_hi = np.minimum.reduceat(u, starts[nonempty]), np.maximum.reduceat(u, starts[nonempty])
-    v_lo, v_hi = np.minimum.reduceat(v, starts[nonempty]), np.maximum.reduceat(v, starts[nonempty])
-    z_mean = np.add.reduceat(pts[:, 2], starts[nonempty]) / counts[nonempty]
+    mean, yaw, z_mean = mean[nonempty], yaw[nonempty], z_mean[nonempty]
+    u_lo, u_hi, v_lo, v_hi = u_lo[nonempty], u_hi[nonempty], v_lo[nonempty], v_hi[nonempty]
     cy, sy = np.cos(yaw), np.sin(yaw)
     center = (mean + np.stack([cy, sy], 1) * ((u_hi + u_lo) / 2)[:, None]
               + np.stack([-sy, cy], 1) * ((v_hi + v_lo) / 2)[:, None])
@@ -248,47 +225,144 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     return objects
 
 
+@njit(cache=True)
+def _group_by_label(cell_of, valid, flat_labels, k):
+    """Counting sort of the items (points or cells) in a labelled cell by label, item
+    order kept within a label: (item indices, bounds) with label l's items at
+    ``bounds[l - 1]:bounds[l]``. Items not ``valid``, outside the grid (cell -1) or in
+    an unlabelled cell are left out."""
+    counts = np.zeros(k + 1, dtype=np.int64)
+    for p in range(len(cell_of)):
+        if valid[p] and cell_of[p] >= 0:
+            counts[flat_labels[cell_of[p]]] += 1
+    bounds = np.zeros(k + 1, dtype=np.int64)
+    for lab in range(1, k + 1):
+        bounds[lab] = bounds[lab - 1] + counts[lab]
+    fill = bounds[:-1].copy()
+    order = np.empty(bounds[k], dtype=np.int64)
+    for p in range(len(cell_of)):
+        if valid[p] and cell_of[p] >= 0:
+            lab = flat_labels[cell_of[p]]
+            if lab > 0:
+                order[fill[lab - 1]] = p
+                fill[lab - 1] += 1
+    return order, bounds
+
+
+@njit(cache=True)
+def _object_stats(pts, bounds):
+    """Per label of points grouped by ``_group_by_label``: the xy mean, the yaw of the
+    principal axis of the xy covariance, the extent along and across it (relative to
+    the mean) and the mean height. A label without points gets zeros."""
+    k = len(bounds) - 1
+    mean = np.zeros((k, 2))
+    yaw, z_mean = np.zeros(k), np.zeros(k)
+    u_lo, u_hi, v_lo, v_hi = np.zeros(k), np.zeros(k), np.zeros(k), np.zeros(k)
+    for o in range(k):
+        a, b = bounds[o], bounds[o + 1]
+        if b == a:
+            continue
+        sx = sy = sz = 0.0
+        for p in range(a, b):
+            sx += pts[p, 0]
+            sy += pts[p, 1]
+            sz += pts[p, 2]
+        mx, my = sx / (b - a), sy / (b - a)
+        sxx = syy = sxy = 0.0
+        for p in range(a, b):
+            dx, dy = pts[p, 0] - mx, pts[p, 1] - my
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+        th = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+        c, s = np.cos(th), np.sin(th)
+        ulo, uhi, vlo, vhi = np.inf, -np.inf, np.inf, -np.inf
+        for p in range(a, b):
+            dx, dy = pts[p, 0] - mx, pts[p, 1] - my
+            u, v = dx * c + dy * s, -dx * s + dy * c
+            ulo, uhi = min(ulo, u), max(uhi, u)
+            vlo, vhi = min(vlo, v), max(vhi, v)
+        mean[o, 0], mean[o, 1], yaw[o], z_mean[o] = mx, my, th, sz / (b - a)
+        u_lo[o], u_hi[o], v_lo[o], v_hi[o] = ulo, uhi, vlo, vhi
+    return mean, yaw, u_lo, u_hi, v_lo, v_hi, z_mean
+
+
 SHADOW_MERGE_M = 5.0  # at most this far behind the nearer part
 
 
 def _merge_shadowed(labels: np.ndarray, k: int, grid: Grid, sensor_xy: tuple[float, float]) -> tuple[np.ndarray, int]:
-    rows, cols = np.nonzero(labels)
-    lab = labels[rows, cols] - 1
-    xy = grid.cell_centers(rows, cols) - np.asarray(sensor_xy)
-    rng = np.hypot(xy[:, 0], xy[:, 1])
-    ang = np.arctan2(xy[:, 1], xy[:, 0])
-    mean_dir = np.zeros((k, 2))
-    np.add.at(mean_dir, lab, np.stack([np.cos(ang), np.sin(ang)], axis=1))
-    center_ang = np.arctan2(mean_dir[:, 1], mean_dir[:, 0])
-    rel = (ang - center_ang[lab] + np.pi) % (2 * np.pi) - np.pi
-    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
-    np.minimum.at(lo, lab, rel)
-    np.maximum.at(hi, lab, rel)
+    relabel, k = _shadow_relabel(labels, k, grid.i0, grid.j0, grid.spec.cell_m, grid.state, float(sensor_xy[0]),
+                                 float(sensor_xy[1]), SHADOW_MERGE_M)
+    return relabel[labels], k
+
+
+@njit(cache=True)
+def _shadow_relabel(labels, k, i0, j0, cell, state, sx, sy, merge_m):
+    """The new label of every old one (index 0 stays 0) after merging each component B
+    that lies behind a component A, seen from the sensor at (sx, sy): B's centre
+    direction within A's angular extent, B starting less than ``merge_m`` past A's far
+    side, and only unseen (EMPTY) cells on the ray between them. Labels keep the order
+    of their lowest member."""
+    ny, nx = labels.shape
+    dir_x, dir_y = np.zeros(k), np.zeros(k)
     r_min, r_max = np.full(k, np.inf), np.zeros(k)
-    np.minimum.at(r_min, lab, rng)
-    np.maximum.at(r_max, lab, rng)
-    half_cell = grid.spec.cell_m / np.maximum(r_min, 1.0)
-    # B behind A: B's centre direction inside A's angular extent, B starting just past A's far side
-    d_ang = (center_ang[None, :] - center_ang[:, None] + np.pi) % (2 * np.pi) - np.pi  # [a, b]
-    gap = r_min[None, :] - r_max[:, None]
-    cand = ((d_ang >= lo[:, None] - half_cell[:, None]) & (d_ang <= hi[:, None] + half_cell[:, None])
-            & (gap > 0) & (gap < SHADOW_MERGE_M))
+    for y in range(ny):
+        for x in range(nx):
+            lab = labels[y, x] - 1
+            if lab < 0:
+                continue
+            px, py = (i0 + x + 0.5) * cell - sx, (j0 + y + 0.5) * cell - sy
+            ang = np.arctan2(py, px)
+            dir_x[lab] += np.cos(ang)
+            dir_y[lab] += np.sin(ang)
+            rng = np.hypot(px, py)
+            r_min[lab] = min(r_min[lab], rng)
+            r_max[lab] = max(r_max[lab], rng)
+    center = np.arctan2(dir_y, dir_x)
+    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
+    for y in range(ny):
+        for x in range(nx):
+            lab = labels[y, x] - 1
+            if lab < 0:
+                continue
+            px, py = (i0 + x + 0.5) * cell - sx, (j0 + y + 0.5) * cell - sy
+            rel = (np.arctan2(py, px) - center[lab] + np.pi) % (2 * np.pi) - np.pi
+            lo[lab] = min(lo[lab], rel)
+            hi[lab] = max(hi[lab], rel)
     parent = np.arange(k)
-    for a, b in zip(*np.nonzero(cand)):
-        steps = np.arange(r_max[a] + grid.spec.cell_m, r_min[b] - grid.spec.cell_m / 2, grid.spec.cell_m / 2)
-        probe = np.asarray(sensor_xy) + steps[:, None] * np.array([np.cos(center_ang[b]), np.sin(center_ang[b])])
-        rc = grid.cell_of(probe)
-        if np.all(grid.state[rc[:, 0], rc[:, 1]] == EMPTY):
-            ra, rb = _root(parent, a), _root(parent, b)
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([_root(parent, i) for i in range(k)])
-    _, new = np.unique(roots, return_inverse=True)
-    merged = np.zeros_like(labels)
-    merged[rows, cols] = new[lab] + 1
-    return merged, int(new.max()) + 1
+    for a in range(k):
+        half_cell = cell / max(r_min[a], 1.0)
+        for b in range(k):
+            gap = r_min[b] - r_max[a]
+            d_ang = (center[b] - center[a] + np.pi) % (2 * np.pi) - np.pi
+            if not (gap > 0 and gap < merge_m and lo[a] - half_cell <= d_ang <= hi[a] + half_cell):
+                continue
+            start, stop, step = r_max[a] + cell, r_min[b] - cell / 2, cell / 2
+            clear = True
+            for i in range(max(int(np.ceil((stop - start) / step)), 0)):
+                d = start + i * step
+                cx = int(np.floor((sx + d * np.cos(center[b])) / cell)) - i0
+                cy = int(np.floor((sy + d * np.sin(center[b])) / cell)) - j0
+                if cx < 0 or cy < 0 or cx >= nx or cy >= ny or state[cy, cx] != EMPTY:
+                    clear = False
+                    break
+            if clear:
+                ra, rb = _root(parent, a), _root(parent, b)
+                parent[max(ra, rb)] = min(ra, rb)
+    relabel = np.zeros(k + 1, dtype=labels.dtype)
+    rank = np.full(k, -1)
+    m = 0
+    for i in range(k):  # roots in index order: the lowest member's order
+        r = _root(parent, i)
+        if rank[r] < 0:
+            rank[r] = m
+            m += 1
+        relabel[i + 1] = rank[r] + 1
+    return relabel, m
 
 
-def _root(parent: np.ndarray, i: int) -> int:
+@njit(cache=True)
+def _root(parent, i):
     while parent[i] != i:
         i = parent[i]
-    return int(i)
+    return i

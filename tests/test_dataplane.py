@@ -236,6 +236,29 @@ def test_received_points_land_in_the_receivers_grid():
     assert np.abs(centers[:, 1]).max() <= 0.9 + 0.5
 
 
+def test_fusion_marks_received_cells_and_which_objects_we_see_ourselves():
+    """Own grid: one ABOVE cell at (10.25, 0.25). Object A covers it and the cell east of
+    it, object B a cell of its own plus a ground-height point, object C lies off the grid."""
+    from vehicle_agent.fusion import SharedObject, fuse
+
+    spec = GridSpec(half_extent_m=20.0)
+    n = spec.cells
+    state = np.full((n, n), GROUND, dtype=np.uint8)
+    grid = Grid(spec, -n // 2, -n // 2, state, np.ones((n, n), dtype=bool))
+    own = tuple(grid.cell_of(np.array([10.25, 0.25])))
+    state[own] = ABOVE
+    pts = {"A": [[10.25, 0.25, 1.0], [10.75, 0.25, 1.0]], "B": [[-5.25, 3.25, 1.0], [-8.0, 3.0, 0.1]],
+           "C": [[60.0, 0.0, 1.0]]}
+    shared = [SharedObject((i, 0), np.array(p), np.zeros(2), 0.0, True) for i, p in enumerate(pts.values())]
+    fused = fuse(grid, shared)
+    cells = lambda *xy: [tuple(grid.cell_of(np.array(p))) for p in xy]  # noqa: E731
+    assert sorted(zip(*np.nonzero(fused.received))) == sorted(cells([10.75, 0.25], [-5.25, 3.25]))
+    assert sorted(zip(*np.nonzero(fused.state == ABOVE))) == sorted(cells([10.25, 0.25], [10.75, 0.25],
+                                                                            [-5.25, 3.25]))
+    assert fused.same_as_own == {(0, 0): True, (1, 0): False, (2, 0): False}
+    assert fuse(grid, []).same_as_own == {} and not fuse(grid, []).received.any()
+
+
 def test_batched_trajectory_sampling_equals_one_at_a_time():
     """relevance samples every receiver's trajectory in one numba pass; it must agree with
     the numpy reference (np.interp, holding both ends) on random trajectories."""

@@ -95,15 +95,20 @@ class Agent:
                                       view.t_sim_s, tr.heading_rad))
             if tr.speed_mps > STATIC_MPS:
                 _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
-        for obj in self.dataplane.shared:
-            xy = obj.points_world[:, :2]
-            center = (xy.min(axis=0) + xy.max(axis=0)) / 2
-            extent = xy.max(axis=0) - xy.min(axis=0)
-            obstacles.append(Obstacle(center, obj.velocity_xy, float(max(extent.max(), 1.0)),
-                                      float(max(extent.min(), 1.0)), view.t_sim_s,
-                                      float(np.arctan2(obj.velocity_xy[1], obj.velocity_xy[0]))))
-            if np.hypot(*obj.velocity_xy) > STATIC_MPS:
-                _mark(moving, grid, xy)
+        shared = [obj for obj in self.dataplane.shared if len(obj.points_world)]
+        if not shared:
+            return obstacles, moving
+        counts = np.array([len(obj.points_world) for obj in shared])
+        xy = np.concatenate([obj.points_world[:, :2] for obj in shared])
+        starts = np.cumsum(counts) - counts
+        lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
+        center, extent = (lo + hi) / 2, hi - lo
+        vel = np.array([obj.velocity_xy for obj in shared], dtype=np.float64)
+        for i in range(len(shared)):
+            obstacles.append(Obstacle(center[i], vel[i], float(max(extent[i].max(), 1.0)),
+                                      float(max(extent[i].min(), 1.0)), view.t_sim_s,
+                                      float(np.arctan2(vel[i, 1], vel[i, 0]))))
+        _mark(moving, grid, xy[np.repeat(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS, counts)])
         return obstacles, moving
 
 

@@ -128,15 +128,18 @@ def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:
     """Merge placed shared objects into the grid (points outside the grid are ignored)."""
     state = grid.state.copy()
     received = np.zeros_like(grid.drivable)
-    same: dict[ObjectKey, bool] = {}
+    if not shared:
+        return FusedGrid(grid, state, received, {})
+    counts = np.array([len(o.points_world) for o in shared])
+    pts = np.concatenate([o.points_world for o in shared])
+    owner = np.repeat(np.arange(len(shared)), counts)
     n = state.shape[0]
-    own_above = grid.state == ABOVE
-    for obj in shared:
-        above = obj.points_world[obj.points_world[:, 2] > grid.spec.ground_clear_m]
-        rc = grid.cell_of(above[:, :2])
-        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-        r, c = rc[inside, 0], rc[inside, 1]
-        same[obj.key] = bool(own_above[r, c].any())
-        received[r, c] |= ~own_above[r, c]
-        state[r, c] = ABOVE
-    return FusedGrid(grid, state, received, same)
+    rc = grid.cell_of(pts[:, :2])
+    use = ((pts[:, 2] > grid.spec.ground_clear_m) & (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0)
+           & (rc[:, 1] < n))
+    r, c = rc[use, 0], rc[use, 1]
+    own = grid.state[r, c] == ABOVE
+    on_own = np.bincount(owner[use], weights=own, minlength=len(shared)) > 0
+    received[r[~own], c[~own]] = True
+    state[r, c] = ABOVE
+    return FusedGrid(grid, state, received, {o.key: bool(hit) for o, hit in zip(shared, on_own)})

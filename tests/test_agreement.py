@@ -8,7 +8,8 @@ import pytest
 
 from channel_proxy import loss, medium
 from protocol.messages import ControlMsg, ObjectMap, Pose
-from vehicle_agent.agreement import (AgreementConfig, decide, frames_of, group_of, members, n_groups, plan)
+from vehicle_agent.agreement import (AgreementConfig, agreed_p, decide, frames_of, group_of, members, n_groups, plan)
+from vehicle_agent.scheduler import make_instance
 
 GROUPED = AgreementConfig()
 
@@ -36,6 +37,8 @@ def test_members_are_those_enough_ballots_list():
     assert members(ballots, 0.5).tolist() == [1, 3]  # need ceil(1.5) = 2 votes
     assert members(ballots, 0.3).tolist() == [1, 2, 3, 9]  # need 1
     assert members({1: [], 2: []}, 0.25).tolist() == []  # first interval: nobody was heard yet
+    assert members({1: [2, 2], 3: np.array([], dtype=np.int64)}, 1.0).tolist() == []  # listing twice: one vote
+    assert members({1: {2}, 3: (2,)}, 1.0).tolist() == [2]
 
 
 def test_membership_agrees_under_heavy_loss():
@@ -178,6 +181,22 @@ def test_the_paper_rule_collides_under_the_same_loss():
     out = medium.play_data(vids, sender, item, start, size, ones, ones.astype(bool), bandwidth_bps=7.2e6,
                            interval_s=0.1, seed=0, tick=0)
     assert out.collided.any(axis=1).mean() > 0.2
+
+
+def test_the_agreed_link_table_equals_asking_pair_by_pair():
+    """p_ij as one matrix (what make_instance uses) equals the per-pair answers, also
+    for a vehicle without a control message (the domain-radius model)."""
+    heard = [msg(v, 4, [1, 2, 3], [(7, 900, {1: 1.0})] if v == 2 else (), xy=(30.0 * v, 5.0 * v)) for v in (2, 3)]
+    decision = decide(1, 4, msg(1, 4, [2, 3], xy=(0.0, 0.0)), heard, AgreementConfig(rule="heard"))
+    links = agreed_p(decision, GROUPED)
+    vids = [1, 2, 3, 9]
+    pairwise = np.array([[links(i, j) for j in vids] for i in vids])
+    assert links.matrix(vids) == pytest.approx(pairwise)
+    assert links(1, 9) == links.outside and 0.0 < links(1, 3) < links(1, 2) <= 1.0
+    offers = {v: m.objects for v, m in decision.messages.items()}
+    by_table = make_instance(offers, links, vids=vids)
+    by_pair = make_instance(offers, lambda i, j: links(i, j), vids=vids)
+    assert np.array_equal(by_table.p_deliver, by_pair.p_deliver) and by_table.p_deliver[0, 0] == 1.0
 
 
 def test_config_checks_and_profile():

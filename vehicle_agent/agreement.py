@@ -55,7 +55,7 @@ picked by the tick.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,9 +107,17 @@ def members(ballots: Mapping[int, Iterable[int]], quorum: float) -> np.ndarray:
     author's listing of itself does not count: a member is a vehicle others heard."""
     if not ballots:
         return np.zeros(0, dtype=np.int64)
-    listed = [np.unique(np.asarray(list(h), dtype=np.int64)) for h in ballots.values()]
-    listed = [h[h != author] for author, h in zip(ballots, listed)]
-    vids, votes = np.unique(np.concatenate(listed), return_counts=True)
+    listed = [np.asarray(h if isinstance(h, np.ndarray) else list(h), dtype=np.int64).ravel()
+              for h in ballots.values()]
+    author = np.repeat(np.fromiter(ballots, dtype=np.int64, count=len(ballots)), [len(h) for h in listed])
+    vid = np.concatenate(listed)
+    others = vid != author
+    vid, author = vid[others], author[others]
+    order = np.lexsort((author, vid))  # a ballot listing a vehicle twice still votes once
+    vid, author = vid[order], author[order]
+    first = np.ones(len(vid), dtype=bool)
+    first[1:] = (vid[1:] != vid[:-1]) | (author[1:] != author[:-1])
+    vids, votes = np.unique(vid[first], return_counts=True)
     need = max(1, math.ceil(quorum * len(ballots) - 1e-9))
     return vids[votes >= need].astype(np.int64)
 
@@ -199,20 +207,34 @@ class PlannedTx:
     frame: int
 
 
-def agreed_p(decision: Decision, config: AgreementConfig) -> Callable[[int, int], float]:
+def agreed_p(decision: Decision, config: AgreementConfig) -> AgreedLinks:
     """p_ij from what every complete group member holds: the model at the distance
     between two group members' reported poses, the model at the domain radius otherwise."""
     known = sorted(decision.messages)
     xy = np.array([[decision.messages[v].pose.x_m, decision.messages[v].pose.y_m] for v in known]).reshape(-1, 2)
-    p = link_probabilities(xy, config.prr)
-    at = {v: n for n, v in enumerate(known)}
-    outside = float(config.prr.prr(config.domain_radius_m))
+    return AgreedLinks({v: n for n, v in enumerate(known)}, link_probabilities(xy, config.prr),
+                       float(config.prr.prr(config.domain_radius_m)))
 
-    def p_ij(i: int, j: int) -> float:
-        a, b = at.get(i), at.get(j)
-        return outside if a is None or b is None else float(p[a, b])
 
-    return p_ij
+@dataclass(frozen=True, slots=True)
+class AgreedLinks:
+    """p_ij between the vehicles ``at`` indexes into ``p``; ``outside`` for any other pair.
+    Call it for one pair, or ask for the ``matrix`` of many (what ``make_instance`` does)."""
+
+    at: dict[int, int]
+    p: np.ndarray
+    outside: float
+
+    def __call__(self, i: int, j: int) -> float:
+        a, b = self.at.get(i), self.at.get(j)
+        return self.outside if a is None or b is None else float(self.p[a, b])
+
+    def matrix(self, vids: Sequence[int]) -> np.ndarray:
+        idx = np.array([self.at.get(int(v), -1) for v in vids], dtype=np.int64)
+        out = np.full((len(idx), len(idx)), self.outside)
+        known = np.flatnonzero(idx >= 0)
+        out[np.ix_(known, known)] = self.p[np.ix_(idx[known], idx[known])]
+        return out
 
 
 def agreed_state(decision: Decision) -> SchedulerState:

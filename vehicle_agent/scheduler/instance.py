@@ -241,7 +241,8 @@ def make_instance(
     """Build the instance from the control messages heard this interval.
 
     ``offers`` maps each sender vid to its objects, as ``SenderOffers`` arrays or as
-    per-object records; ``p_deliver`` gives p_ij for a (sender, receiver) pair;
+    per-object records; ``p_deliver`` gives p_ij for a (sender, receiver) pair (a
+    callable, a mapping, or an object whose ``matrix(vids)`` returns the whole table);
     ``vids`` adds receivers that offer nothing; ``history`` lists, per object, the
     receivers that already have it. S_f = B * T_n / 8 bytes and N = floor(T_d / T_n).
     """
@@ -271,9 +272,13 @@ def make_instance(
                 for j in receivers:
                     if int(j) in col:
                         hist[row, col[int(j)]] = True
-    get_p = p_deliver if callable(p_deliver) else (lambda i, j: p_deliver[(i, j)])
     ids = vid_arr.tolist()
-    p = np.array([[1.0 if i == j else float(get_p(i, j)) for j in ids] for i in ids]).reshape(C, C)
+    if hasattr(p_deliver, "matrix"):  # vectorized: the whole (C, C) table at once
+        p = np.array(p_deliver.matrix(ids), dtype=np.float64).reshape(C, C)
+        np.fill_diagonal(p, 1.0)
+    else:
+        get_p = p_deliver if callable(p_deliver) else (lambda i, j: p_deliver[(i, j)])
+        p = np.array([[1.0 if i == j else float(get_p(i, j)) for j in ids] for i in ids]).reshape(C, C)
     return instance_from_arrays(
         vid_arr,
         owner_vid,

@@ -304,31 +304,27 @@ def _shadow_relabel(labels, k, i0, j0, cell, state, sx, sy, merge_m):
     side, and only unseen (EMPTY) cells on the ray between them. Labels keep the order
     of their lowest member."""
     ny, nx = labels.shape
+    cells = np.flatnonzero(labels.ravel())
+    lab = np.empty(len(cells), dtype=np.int64)
+    ang = np.empty(len(cells))
     dir_x, dir_y = np.zeros(k), np.zeros(k)
     r_min, r_max = np.full(k, np.inf), np.zeros(k)
-    for y in range(ny):
-        for x in range(nx):
-            lab = labels[y, x] - 1
-            if lab < 0:
-                continue
-            px, py = (i0 + x + 0.5) * cell - sx, (j0 + y + 0.5) * cell - sy
-            ang = np.arctan2(py, px)
-            dir_x[lab] += np.cos(ang)
-            dir_y[lab] += np.sin(ang)
-            rng = np.hypot(px, py)
-            r_min[lab] = min(r_min[lab], rng)
-            r_max[lab] = max(r_max[lab], rng)
+    for i in range(len(cells)):
+        y, x = divmod(cells[i], nx)
+        lab[i] = labels[y, x] - 1
+        px, py = (i0 + x + 0.5) * cell - sx, (j0 + y + 0.5) * cell - sy
+        ang[i] = np.arctan2(py, px)
+        dir_x[lab[i]] += np.cos(ang[i])
+        dir_y[lab[i]] += np.sin(ang[i])
+        rng = np.hypot(px, py)
+        r_min[lab[i]] = min(r_min[lab[i]], rng)
+        r_max[lab[i]] = max(r_max[lab[i]], rng)
     center = np.arctan2(dir_y, dir_x)
     lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
-    for y in range(ny):
-        for x in range(nx):
-            lab = labels[y, x] - 1
-            if lab < 0:
-                continue
-            px, py = (i0 + x + 0.5) * cell - sx, (j0 + y + 0.5) * cell - sy
-            rel = (np.arctan2(py, px) - center[lab] + np.pi) % (2 * np.pi) - np.pi
-            lo[lab] = min(lo[lab], rel)
-            hi[lab] = max(hi[lab], rel)
+    for i in range(len(cells)):
+        rel = (ang[i] - center[lab[i]] + np.pi) % (2 * np.pi) - np.pi
+        lo[lab[i]] = min(lo[lab[i]], rel)
+        hi[lab[i]] = max(hi[lab[i]], rel)
     parent = np.arange(k)
     for a in range(k):
         half_cell = cell / max(r_min[a], 1.0)

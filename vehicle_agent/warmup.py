@@ -49,12 +49,14 @@ def _as_received(msg):
 
 
 def synthetic_ranges(lidar: LidarConfig) -> np.ndarray:
-    """A range image of flat ground with a 2 m wide, 1.5 m tall block 11 m straight ahead."""
+    """A range image of flat ground with two 2 m wide, 1.5 m tall blocks, 11 m straight
+    ahead and 9 m straight behind (two objects: the shadow-merge kernel runs too)."""
     az, el = lidar.azimuths_rad(), lidar.elevations_rad()
     ground = np.where(el < 0.0, lidar.mount_height_m / np.tan(-np.minimum(el, -1e-6)), 0.0)
     ground[ground * np.sqrt(1.0 + np.tan(el) ** 2) > lidar.range_m] = 0.0
     d = np.broadcast_to(ground, (len(az), len(el))).copy()
-    z_at_block = lidar.mount_height_m + 11.0 * np.tan(el)
-    ahead = np.abs(np.arctan2(np.sin(az), np.cos(az))) < np.arctan2(1.0, 11.0)
-    d[np.ix_(ahead, (z_at_block >= 0.0) & (z_at_block <= 1.5))] = 11.0
+    for direction, dist in ((0.0, 11.0), (np.pi, 9.0)):
+        z_at_block = lidar.mount_height_m + dist * np.tan(el)
+        facing = np.abs(np.arctan2(np.sin(az - direction), np.cos(az - direction))) < np.arctan2(1.0, dist)
+        d[np.ix_(facing, (z_at_block >= 0.0) & (z_at_block <= 1.5))] = dist
     return np.rint(d * 100.0).astype(np.uint16)

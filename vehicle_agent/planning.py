@@ -407,16 +407,12 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     return float(s[np.argmax(first)])
 
 
-def trajectory_of(path: np.ndarray, v0: float, accel: float, v_cruise: float, t_now_s: float,
-                  stop_at_m: float | None, horizon_s: float = 6.0, step_s: float = 1.0) -> np.ndarray:
-    """Waypoints [x, y, t] every ``step_s`` of the planned motion (the control message's)."""
+def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_now_s: float,
+                  horizon_s: float = 6.0, step_s: float = 1.0) -> np.ndarray:
+    """Waypoints [x, y, t] every ``step_s`` along ``path``, from ``v0`` towards the cruise
+    speed at ``accel``: what the control message shares (``Planner.run_step``)."""
     t = np.arange(0.0, horizon_s + 1e-9, step_s)
-    if stop_at_m is not None and accel < 0:
-        t_stop = v0 / -accel if accel < 0 else np.inf
-        tt = np.minimum(t, t_stop)
-        s = v0 * tt + 0.5 * accel * tt * tt
-    else:
-        s = np.array([_distance_with(v0, v_cruise, abs(accel) if accel > 0 else 2.0, x) for x in t])
+    s = np.array([_distance_with(v0, v_cruise, accel, x) for x in t])
     cum = arc_lengths(path) if len(path) > 1 else [0.0]
     s = np.minimum(s, cum[-1])
     xy = point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
@@ -450,7 +446,8 @@ class Planner:
         cruise = self.mission.cruise_speed_mps
         if cruise <= 0.0:  # a waiting vehicle holds still
             here = np.array([[pose.x_m, pose.y_m]])
-            return Plan(here, -spec.max_brake_mps2, trajectory_of(here, 0.0, 0.0, 0.0, t_now_s, None), None, True)
+            traj = trajectory_of(here, 0.0, 0.0, cfg.comfort_accel_mps2, t_now_s)
+            return Plan(here, -spec.max_brake_mps2, traj, None, True)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         path = self.path_planner.plan(grid, static, pose, speed_mps)
         s = arc_lengths(path)
@@ -474,7 +471,13 @@ class Planner:
                     max(speed_mps**2 / (2 * max(stop_at, 0.1)), cfg.comfort_brake_mps2 * 0.5), spec.max_brake_mps2)
                 if speed_mps < 0.3:
                     accel = -spec.max_brake_mps2  # hold
-        traj = trajectory_of(path, speed_mps, accel, cruise, t_now_s, stop_at if braking else None)
+        # The shared trajectory is where the vehicle means to go: while it brakes or waits
+        # for a conflict, the drive it resumes once the conflict is gone. Senders judge an
+        # object's relevance against it; a trajectory that stops short of the conflict made
+        # the very object the ego waited for irrelevant, so nobody sent it again, the ego's
+        # copy aged out after MAX_AGE_S and it drove on into it (measured: red_light, 20
+        # km/h, delta 1 s, autocast crashed where single was safe).
+        traj = trajectory_of(path, speed_mps, cruise, cfg.comfort_accel_mps2, t_now_s)
         if stop_at is not None:
             # steer only along the path up to the stop point: pure pursuit looking past it
             # cuts the corner into what we may stop for (measured: an overtaking ego that

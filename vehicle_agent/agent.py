@@ -16,7 +16,7 @@ import numpy as np
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
 from vehicle_agent.control import VehicleController
 from vehicle_agent.dataplane import DataPlane, View
-from vehicle_agent.fusion import FusedGrid
+from vehicle_agent.fusion import FusedGrid, stack_points
 from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
 
 
@@ -98,9 +98,8 @@ class Agent:
         shared = [obj for obj in self.dataplane.shared if len(obj.points_world)]
         if not shared:
             return obstacles, moving
-        counts = np.array([len(obj.points_world) for obj in shared])
-        xy = np.concatenate([obj.points_world[:, :2] for obj in shared])
-        starts = np.cumsum(counts) - counts
+        pts, starts, counts = stack_points(shared)
+        xy = pts[:, :2]
         lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
         center, extent = (lo + hi) / 2, hi - lo
         vel = np.array([obj.velocity_xy for obj in shared], dtype=np.float64)

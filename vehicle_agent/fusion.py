@@ -75,11 +75,10 @@ def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: flo
     return (np.abs(c * dx + s * dy) <= length_m / 2 + margin_m) & (np.abs(-s * dx + c * dy) <= width_m / 2 + margin_m)
 
 
-def _concat(shared: list[SharedObject]) -> tuple[np.ndarray, np.ndarray]:
-    """All objects' points stacked, and each object's start row (for reduceat)."""
-    counts = np.array([len(o.points_world) for o in shared])
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    return np.concatenate([o.points_world for o in shared]), starts
+def stack_points(shared: list[SharedObject]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All objects' points stacked, each object's start row (for reduceat) and its count."""
+    counts = np.array([len(o.points_world) for o in shared], dtype=np.int64)
+    return np.concatenate([o.points_world for o in shared]), np.cumsum(counts) - counts, counts
 
 
 def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: float) -> list[SharedObject]:
@@ -90,7 +89,7 @@ def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: fl
     shared = [o for o in shared if len(o.points_world)]
     if not shared:
         return []
-    pts, starts = _concat(shared)
+    pts, starts, _ = stack_points(shared)
     mine = np.zeros(len(pts), dtype=bool)
     for pose in poses:  # a handful of poses, each test vectorized over every point
         mine |= on_body(pts, pose, length_m, width_m)
@@ -112,7 +111,7 @@ def not_contradicted(shared: list[SharedObject], grid: Grid, free_share: float =
     stale = [o for o in shared if not o.fresh and len(o.points_world)]
     if not stale:
         return shared
-    pts, starts = _concat(stale)
+    pts, starts, _ = stack_points(stale)
     n = grid.state.shape[0]
     rc = grid.cell_of(pts[:, :2])
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
@@ -130,8 +129,7 @@ def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:
     received = np.zeros_like(grid.drivable)
     if not shared:
         return FusedGrid(grid, state, received, {})
-    counts = np.array([len(o.points_world) for o in shared])
-    pts = np.concatenate([o.points_world for o in shared])
+    pts, _, counts = stack_points(shared)
     owner = np.repeat(np.arange(len(shared)), counts)
     n = state.shape[0]
     rc = grid.cell_of(pts[:, :2])

@@ -48,3 +48,109 @@ def test_a_braking_vehicle_shares_where_it_means_to_go_not_its_stop():
     along = np.array([progress_along(route, p) for p in plan.trajectory[:, :2].astype(float)]) - 5.0
     assert along[0] == pytest.approx(0.0, abs=0.5)
     assert along[-1] > plan.conflict_s_m + 5.0  # past the crossing, not stopped before it
+
+
+# ------------------------------------------------------------------ first_conflict
+
+SPEC = dict(length_m=4.5, width_m=1.8, height_m=1.5, wheelbase_m=2.7, max_accel_mps2=3.0, max_brake_mps2=8.0,
+            max_steer_rad=0.6)
+
+
+def _straight(n_m: float = 60.0) -> np.ndarray:
+    x = np.arange(0.0, n_m + 1e-9, 0.5)
+    return np.column_stack([x, np.zeros_like(x)])
+
+
+def test_a_car_crossing_when_the_ego_gets_there_stops_it_before_its_swept_lane():
+    """Ego east along y=0 at 10 m/s; a 4.5 x 1.8 car drives north along x=30 and is at
+    the crossing at t=3 s, when the ego is. The ego's body is three circles of radius
+    0.9*sqrt(2) at -1.35, 0, +1.35 m; clearance 2.3 m: reach 3.573 m. The car's side
+    (its box's x half 0.9) is within reach of the front circle once
+    30 - (s + 1.35) - 0.9 < 3.573, i.e. s > 24.177: the first waypoint is 24.5 m."""
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
+
+    path = _straight()
+    t_path = arc_lengths(path) / 10.0
+    car = Obstacle(np.array([30.0, -30.0]), np.array([0.0, 10.0]), 4.5, 1.8, 0.0, np.pi / 2)
+    spec, cfg = VehicleSpec(**SPEC), PlannerConfig()
+    assert first_conflict(path, t_path, spec, [car], 0.0, cfg) == pytest.approx(24.5)
+    # seen 1 s ago 10 m further back: the same car now
+    older = Obstacle(np.array([30.0, -40.0]), np.array([0.0, 10.0]), 4.5, 1.8, -1.0, np.pi / 2)
+    assert first_conflict(path, t_path, spec, [older], 0.0, cfg) == pytest.approx(24.5)
+    # 5 s later: when the ego is at the crossing (t = 3 +- 1.5 s) the car is 20 m or more short of it
+    late = Obstacle(np.array([30.0, -80.0]), np.array([0.0, 10.0]), 4.5, 1.8, 0.0, np.pi / 2)
+    assert first_conflict(path, t_path, spec, [late], 0.0, cfg) is None
+
+
+def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
+    """The dense numpy formulation (every waypoint x time x obstacle), slower: the
+    kernel must give the same answer."""
+    from vehicle_agent.paths import point_at
+
+    def near(path, pos, half, cos_h, sin_h):
+        full = arc_lengths(path)
+        body_half = max(spec.length_m - spec.width_m, 0.0) / 2
+        radius = np.hypot(spec.width_m / 2, spec.width_m / 2)
+        out = np.zeros(pos.shape[:-1], dtype=bool)
+        extra = (None,) * (pos.ndim - 2)
+        for shift in (-body_half, 0.0, body_half):
+            point = point_at(path, full + shift)
+            d = point[(slice(None), *extra)] - pos
+            u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]
+            v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]
+            out |= np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0)) < radius + cfg.safety_m
+        return out
+
+    s = arc_lengths(path)
+    within = t_path <= cfg.horizon_s
+    if not obstacles or not within.any():
+        return None
+    path, s, t_path = path[within], s[within], t_path[within]
+    xy = np.array([o.xy for o in obstacles])
+    vel = np.array([o.velocity for o in obstacles])
+    dt_obs = np.array([t_now_s - o.t_sim_s for o in obstacles])
+    half = np.array([[o.length_m / 2, o.width_m / 2] for o in obstacles])
+    cos_h, sin_h = np.cos([o.heading_rad for o in obstacles]), np.sin([o.heading_rad for o in obstacles])
+    offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
+    when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)
+    pos = xy[None, None] + vel[None, None] * (when[..., None, None] + dt_obs[None, None, :, None])
+    timed = near(path, pos, half, cos_h, sin_h).any(axis=1)
+    timed[s < 0.5] = False
+    conflicting = timed.any(axis=0)
+    if not conflicting.any():
+        return None
+    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)
+    swept = xy[None] + vel[None] * (sweep_t[:, None, None] + dt_obs[None, :, None])
+    zone = near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h).any(axis=1)
+    zone = zone[:, conflicting]
+    zone[s < 0.5] = False
+    first = zone.any(axis=1) | timed[:, conflicting].any(axis=1)
+    return float(s[np.argmax(first)])
+
+
+def test_first_conflict_matches_the_dense_reference_on_random_traffic():
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
+
+    rng = np.random.default_rng(7)
+    spec, cfg = VehicleSpec(**SPEC), PlannerConfig()
+    found = 0
+    for _ in range(200):
+        # a curving path, 40-80 m, waypoints ~0.5 m apart
+        n = int(rng.integers(80, 160))
+        heading = np.cumsum(rng.normal(0.0, 0.03, n))
+        path = np.cumsum(np.column_stack([np.cos(heading), np.sin(heading)]) * 0.5, axis=0)
+        v0 = float(rng.uniform(0.0, 12.0))
+        t_path = arc_lengths(path) / max(v0, 2.0)
+        obstacles = []
+        for _ in range(int(rng.integers(1, 40))):
+            xy = path[rng.integers(0, n)] + rng.normal(0.0, 25.0, 2)
+            vel = rng.normal(0.0, 6.0, 2) * (rng.random() < 0.8)
+            obstacles.append(Obstacle(xy, vel, float(rng.uniform(1.0, 5.0)), float(rng.uniform(1.0, 2.0)),
+                                      float(-rng.uniform(0.0, 1.0)), float(rng.uniform(-np.pi, np.pi))))
+        got = first_conflict(path, t_path, spec, obstacles, 0.0, cfg)
+        want = _first_conflict_reference(path, t_path, spec, obstacles, 0.0, cfg)
+        assert got == want
+        found += want is not None
+    assert 40 < found < 190  # both answers are exercised

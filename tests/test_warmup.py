@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
+
 from numba.core.dispatcher import Dispatcher
 
 from channel_proxy.profiles import get_profile
@@ -13,6 +15,8 @@ from protocol.messages import ControlMsg, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
+from vehicle_agent.paths import arc_lengths
+from vehicle_agent.planning import Obstacle, first_conflict
 from vehicle_agent.warmup import warm_up
 from world_server.scenarios import ScenarioParams
 from world_server.sim import Simulation
@@ -51,6 +55,14 @@ def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
     payloads = truck.dataplane.payloads(truck_view, [t.track_id for t in truck_view.tracks])
     assert payloads, "the truck should see something to share"
     ego.drive(ego_view, ego.fuse(ego_view, list(payloads.values())), scans[0])
+    # nothing moves at the start: a car that crosses the ego's planned path when it gets there
+    path = ego.last_plan.path
+    t_path = arc_lengths(path) / 10.0
+    ahead = int(np.searchsorted(arc_lengths(path), 10.0))
+    d = path[ahead + 1] - path[ahead]
+    normal = np.array([-d[1], d[0]]) / np.hypot(*d)
+    crossing = Obstacle(path[ahead] - 10.0 * normal, 10.0 * normal, 4.5, 1.8, 0.0, float(np.arctan2(*normal[::-1])))
+    assert first_conflict(path, t_path, ego.mission.spec, [crossing], 0.0, ego.planner.config) is not None
 
     after = kernel_signatures()
     grown = {k: (before.get(k, 0), n) for k, n in after.items() if n > before.get(k, 0)}

@@ -348,21 +348,61 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
     return t
 
 
-def _near(path: np.ndarray, pos: np.ndarray, half: np.ndarray, cos_h: np.ndarray, sin_h: np.ndarray,
-          spec: VehicleSpec, safety_m: float) -> np.ndarray:
-    """(M, ..., O): the ego's body at each path point comes within ``safety_m`` of each
-    obstacle's oriented box placed at ``pos`` (M, ..., O, 2)."""
+def _body_centers(path: np.ndarray, spec: VehicleSpec) -> tuple[np.ndarray, float]:
+    """(3, M, 2) the ego's rear, middle and front circle centres at each path point, and
+    their radius: three circles of the half width cover the box, corners too."""
     full = arc_lengths(path)
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-    body_radius = np.hypot(spec.width_m / 2, spec.width_m / 2)  # three such circles cover the box, corners too
-    out = np.zeros(pos.shape[:-1], dtype=bool)
-    extra = (None,) * (pos.ndim - 2)
-    for shift in (-body_half, 0.0, body_half):  # rear, middle and front circles of the ego
-        point = point_at(path, full + shift) if shift else path
-        d = point[(slice(None), *extra)] - pos
-        u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]  # along the obstacle
-        v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]  # across it
-        out |= np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0)) < body_radius + safety_m
+    centers = np.stack([point_at(path, full - body_half), path, point_at(path, full + body_half)])
+    return np.ascontiguousarray(centers, dtype=np.float64), float(np.hypot(spec.width_m / 2, spec.width_m / 2))
+
+
+@njit(cache=True)
+def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
+    """(M, O): at some time ``times[m, k]`` (row 0 for all m when ``times`` has one
+    row) the obstacle's oriented box, at ``xy`` ``dt_obs`` ago and moving at ``vel``,
+    comes within ``reach_m`` of one of the ego's body circles ``centers[:, m]``.
+
+    A (path point,
+    obstacle) pair is skipped when the point is farther than ``reach_m`` plus the box's
+    half diagonal from the whole segment the box centre sweeps over those times (a
+    lower bound on every tested distance), which most pairs are."""
+    n_c, m_pts = centers.shape[0], centers.shape[1]
+    n_obs, n_k = xy.shape[0], times.shape[1]
+    out = np.zeros((m_pts, n_obs), dtype=np.bool_)
+    for o in range(n_obs):
+        bound = reach_m + np.hypot(half[o, 0], half[o, 1]) + 1e-6
+        for m in range(m_pts):
+            row = m if times.shape[0] > 1 else 0
+            t_lo, t_hi = times[row, 0], times[row, 0]
+            for k in range(1, n_k):
+                t_lo = min(t_lo, times[row, k])
+                t_hi = max(t_hi, times[row, k])
+            t_lo, t_hi = t_lo + dt_obs[o], t_hi + dt_obs[o]
+            ax, ay = xy[o, 0] + vel[o, 0] * t_lo, xy[o, 1] + vel[o, 1] * t_lo
+            bx, by = xy[o, 0] + vel[o, 0] * t_hi - ax, xy[o, 1] + vel[o, 1] * t_hi - ay
+            len2 = bx * bx + by * by
+            far = True
+            for c in range(n_c):
+                px, py = centers[c, m, 0] - ax, centers[c, m, 1] - ay
+                f = 0.0 if len2 <= 0.0 else min(max((px * bx + py * by) / len2, 0.0), 1.0)
+                if np.hypot(px - f * bx, py - f * by) < bound:
+                    far = False
+                    break
+            if far:
+                continue
+            for k in range(n_k):
+                t = times[row, k] + dt_obs[o]
+                ox, oy = xy[o, 0] + vel[o, 0] * t, xy[o, 1] + vel[o, 1] * t
+                for c in range(n_c):
+                    dx, dy = centers[c, m, 0] - ox, centers[c, m, 1] - oy
+                    u = abs(dx * cos_h[o] + dy * sin_h[o]) - half[o, 0]  # along the obstacle
+                    v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half[o, 1]  # across it
+                    if np.hypot(max(u, 0.0), max(v, 0.0)) < reach_m:
+                        out[m, o] = True
+                        break
+                if out[m, o]:
+                    break
     return out
 
 
@@ -390,18 +430,18 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     half = np.array([[o.length_m / 2, o.width_m / 2] for o in obstacles])  # (O, 2)
     cos_h = np.cos([o.heading_rad for o in obstacles])
     sin_h = np.sin([o.heading_rad for o in obstacles])
+    centers, radius = _body_centers(path, spec)
+    reach = radius + cfg.safety_m
     offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
-    pos = xy[None, None] + vel[None, None] * (when[..., None, None] + dt_obs[None, None, :, None])  # (M, W, O, 2)
-    timed = _near(path, pos, half, cos_h, sin_h, spec, cfg.safety_m).any(axis=1)  # (M, O)
+    timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, reach)  # (M, O)
     timed[s < 0.5] = False  # where the vehicle already is
     conflicting = timed.any(axis=0)  # (O,)
     if not conflicting.any():
         return None
-    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)
-    swept = xy[None] + vel[None] * (sweep_t[:, None, None] + dt_obs[None, :, None])  # (T, O, 2)
-    zone = _near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h, spec,
-                 cfg.safety_m).any(axis=1)[:, conflicting]  # (M, O')
+    c = conflicting
+    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)[None, :]  # the same times at every waypoint
+    zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c], reach)  # (M, O')
     zone[s < 0.5] = False
     first = zone.any(axis=1) | timed[:, conflicting].any(axis=1)
     return float(s[np.argmax(first)])

@@ -18,6 +18,8 @@ from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
+from vehicle_agent.paths import arc_lengths
+from vehicle_agent.planning import Obstacle, first_conflict
 
 
 def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
@@ -38,9 +40,25 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     payloads = agent.dataplane.payloads(view, [t.track_id for t in view.tracks])
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots
+    _warm_conflict(agent)
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None
+
+
+def _warm_conflict(agent: Agent) -> None:
+    """The synthetic scene has nothing moving, so the planner never predicts a conflict
+    in it: a car that crosses the route 10 m ahead when the vehicle gets there loads the
+    conflict kernel (both its uses: the timed test and the swept zone)."""
+    route = np.asarray(agent.mission.route, dtype=float)
+    s = arc_lengths(route)
+    path = route[s <= 30.0] if (s <= 30.0).sum() >= 2 else route[:2]
+    a, b = path[0], path[-1]
+    d = (b - a) / max(float(np.hypot(*(b - a))), 1e-9)
+    normal = np.array([-d[1], d[0]])
+    crossing = Obstacle(a + 10.0 * d - 10.0 * normal, 10.0 * normal, 4.5, 1.8, 0.0, float(np.arctan2(normal[1], normal[0])))
+    t_path = arc_lengths(path) / 10.0
+    first_conflict(path, t_path, agent.mission.spec, [crossing], 0.0, agent.planner.config)
 
 
 def _as_received(msg):

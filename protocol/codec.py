@@ -26,6 +26,7 @@ class MalformedMessage(ValueError):
 
 # dtypes an array field may carry on the wire; anything else is refused on decode.
 _WIRE_DTYPES = frozenset(["<f4", "<f8", "<i2", "<i4", "<i8", "|u1", "|i1", "<u2", "<u4", "|b1"])
+_DTYPE_OF = {name: np.dtype(name) for name in _WIRE_DTYPES}
 
 _REGISTRY: dict[int, type] = {}
 _HINTS: dict[type, list[tuple[str, Any]]] = {}
@@ -218,17 +219,23 @@ def _record_converter(cls: type) -> Converter:
 
 
 def _array_from_wire(value: Any) -> np.ndarray:
-    if not (isinstance(value, list) and len(value) == 3):
+    if type(value) is not list or len(value) != 3:
         _bad("expected an array triple [dtype, shape, bytes]")
     dtype_str, shape, raw = value
-    if dtype_str not in _WIRE_DTYPES or not isinstance(raw, bytes):
+    dtype = _DTYPE_OF.get(dtype_str) if type(dtype_str) is str else None
+    if dtype is None or type(raw) is not bytes:
         _bad(f"bad array dtype {dtype_str!r}")
-    if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+    if type(shape) is not list:
         _bad(f"bad array shape {shape!r}")
-    dtype = np.dtype(dtype_str)
-    if math.prod(shape) * dtype.itemsize != len(raw):
+    count = 1
+    for d in shape:  # a loop, not all(<genexpr>): a control bundle decodes ~300 arrays
+        if type(d) is not int or d < 0:
+            _bad(f"bad array shape {shape!r}")
+        count *= d
+    if count * dtype.itemsize != len(raw):
         _bad(f"{len(raw)} bytes do not fill shape {shape} of {dtype}")
-    return np.frombuffer(raw, dtype=dtype).reshape(shape)
+    flat = np.frombuffer(raw, dtype=dtype)
+    return flat if len(shape) == 1 else flat.reshape(shape)
 
 
 def decode(payload: bytes | bytearray | memoryview, expected: type | None = None) -> Any:

@@ -72,6 +72,10 @@ def _envelope(*fields):
     (_envelope(4, 1, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [10, 3], b"\x00" * 60]), "version"),
     (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [10, 3], b"\x00" * 12]), "do not fill"),
     (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["O", [1], b"\x00"]), "bad array dtype"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, [["<u2"], [1], b"\x00\x00"]), "bad array dtype"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [-1, -2], b"\x00\x00"]), "bad array shape"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", [1.0], b"\x00\x00"]), "bad array shape"),
+    (_envelope(4, 2, 0, 0.0, 1, [0.0, 0.0, 0.0], 0.0, ["<u2", 1, b"\x00\x00"]), "bad array shape"),
     (msgpack.packb({"tick": 1}), "not a message envelope"),
 ])
 def test_malformed_payloads_raise_one_named_error(payload, why):

@@ -54,6 +54,8 @@ class PrrModel:
     p_fixed: float = 1.0  # fixed only
     cutoff_m: float | None = None  # nobody hears or is disturbed beyond; None: where PRR < 0.001
     _grid: np.ndarray = field(init=False, repr=False, compare=False)
+    _max_range_m: float = field(init=False, repr=False, compare=False)
+    _knots: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.curve not in CURVES:
@@ -62,10 +64,16 @@ class PrrModel:
             raise ValueError("range_m, exponent, sigma_db and spread_m must be positive")
         if not 0.0 <= self.p_fixed <= 1.0 or not 0.0 < self.prr_at_range < 1.0:
             raise ValueError("p_fixed must lie in [0, 1] and prr_at_range in (0, 1)")
-        object.__setattr__(self, "_grid", self._exact(np.linspace(0.0, self.max_range_m, _GRID_POINTS)))
+        object.__setattr__(self, "_max_range_m", self._cutoff())
+        object.__setattr__(self, "_knots", np.linspace(0.0, self.max_range_m, _GRID_POINTS))
+        object.__setattr__(self, "_grid", self._exact(self._knots))
 
     @property
     def max_range_m(self) -> float:
+        """Beyond this distance p is 0 (computed once: agents read it every interval)."""
+        return self._max_range_m
+
+    def _cutoff(self) -> float:
         if self.cutoff_m is not None:
             return float(self.cutoff_m)
         if self.curve == "fixed":
@@ -89,7 +97,7 @@ class PrrModel:
     def prr(self, distance_m: np.ndarray | float) -> np.ndarray:
         """p at each distance (vectorised: interpolated on a fine grid); 0 beyond the cutoff."""
         d = np.asarray(distance_m, dtype=np.float64)
-        p = np.interp(d, np.linspace(0.0, self.max_range_m, _GRID_POINTS), self._grid)
+        p = np.interp(d, self._knots, self._grid)
         return np.where(d <= self.max_range_m, p, 0.0)
 
 

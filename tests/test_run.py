@@ -124,6 +124,19 @@ def test_each_scenario_runs_to_a_judged_outcome(scenario_runs, scenario):
     assert launch.leftovers() == []
 
 
+def test_each_agent_reports_the_cpu_time_of_its_stages(scenario_runs):
+    """The agent's exit line (read by ``autocast bench pipeline``) has every stage's CPU
+    time per tick; the stages' means add up to no more than the whole tick's."""
+    launch = scenario_runs("left_turn")
+    for vid in range(5):
+        lines = (launch.run_dir / "logs" / f"agent{vid}.log").read_text().splitlines()
+        t = json.loads([ln for ln in lines if ln.startswith("agent_timings ")][-1].removeprefix("agent_timings "))
+        stages = [t[f"{s}_cpu_mean"] for s in ("perception", "spatial_reasoning", "fusion", "planning", "control")
+                  if f"{s}_cpu_mean" in t]
+        assert len(stages) >= 4 and all(x >= 0.0 for x in stages), t  # single: no spatial reasoning
+        assert t["perception_cpu_mean"] > 0.0 and 0.0 < sum(stages) <= t["cpu_mean"] + 5e-3, t  # means rounded to 1 us
+
+
 def test_the_same_seed_gives_the_same_outcome(scenario_runs, launches):
     first = scenario_runs("left_turn")
     again = launches("again", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single")

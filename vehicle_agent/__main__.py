@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import cProfile
 import faulthandler
 import json
 import logging
+import os
 import queue
 import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -21,7 +24,7 @@ from protocol.codec import encode
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
-from vehicle_agent.agent import Agent, LaneFollower
+from vehicle_agent.agent import Agent, LaneFollower, timed
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
@@ -88,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+PROFILE_ENV = "AUTOCAST_AGENT_PROFILE"  # a directory: each agent profiles its ticks into <dir>/agent<vid>.pstats
 SCHEDULER_OF = {"agnostic": "agnostic", "autocast": "autocast", "autocast-fptas": "autocast-fptas"}
 
 
@@ -116,6 +120,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     ]
     cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
     token = session.liveliness().declare_token(keys.alive(run, vid))
+    profile_dir = os.environ.get(PROFILE_ENV)
+    profiler = cProfile.Profile(time.thread_time) if profile_dir else None  # CPU, not the waits
     last_scan = time.monotonic()
     try:
         while not stop.is_set():
@@ -129,7 +135,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
             last_scan = time.monotonic()
             faulthandler.dump_traceback_later(STALL_DUMP_S)  # a stalled tick leaves its stack in the log
             try:
-                cmd = step.run(scan)
+                cmd = step.run(scan) if profiler is None else profiler.runcall(step.run, scan)
             except Exception:  # a bug in one stage must not take the vehicle down: fail safe
                 log.exception("tick %d failed; braking", scan.tick)
                 spec = mission.spec
@@ -145,6 +151,9 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
     print("agent_timings " + json.dumps(step.timing_summary()), file=sys.stderr, flush=True)
+    if profiler is not None:
+        Path(profile_dir).mkdir(parents=True, exist_ok=True)
+        profiler.dump_stats(Path(profile_dir) / f"agent{vid}.pstats")
     return 0
 
 
@@ -163,6 +172,7 @@ class Pipeline:
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report_pub = reliable_publisher(session, keys.report(run, mission.vid)) if mission.role == "ego" else None
         self.timings: dict[str, list[float]] = {}
+        self._link_data: dict[str, float] = {}
 
     def close(self) -> None:
         if self.link is not None:
@@ -177,7 +187,10 @@ class Pipeline:
         if self.link is not None:
             self.link.wait_s = 0.0
         agent = self.agent
-        extra = self._emp(scan) if self.scheme == "emp" else None
+        extra = None
+        if self.scheme == "emp":
+            with timed(agent.timings_ms, "link"):
+                extra = self._emp(scan)
         view = agent.perceive(scan, extra)
         payloads: list[bytes] = []
         if self.scheme in SCHEDULER_OF:
@@ -186,7 +199,8 @@ class Pipeline:
         plan = agent.plan(view, fused, scan)
         cmd = agent.control(plan, scan)
         if self.report_pub is not None:
-            self._report(view, plan, scan)
+            with timed(agent.timings_ms, "report"):
+                self._report(view, plan, scan)
         agent.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
         wait_ms = self.link.wait_s * 1e3 if self.link is not None else 0.0
         agent.timings_ms["channel_wait"] = wait_ms
@@ -200,16 +214,21 @@ class Pipeline:
         """Control message -> what we heard -> the agreed schedule -> our slots -> what we decoded."""
         agent, link = self.agent, self.link
         own = agent.control_message(view, scan, self.heard)
-        heard = link.exchange_control(own)
+        with timed(agent.timings_ms, "link"):
+            heard = link.exchange_control(own)
         self.heard = sorted(m.vid for m in heard)
         agent.dataplane.neighbors.update(heard)
-        t0 = time.perf_counter()
-        decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
-        slots = plan_transmissions(decision, self.agreement)
-        agent.timings_ms["schedule"] = (time.perf_counter() - t0) * 1e3
-        blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
-        txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]
-        return [r.payload for r in link.exchange_data(scan.tick, scan.t_sim_s, txs)]
+        with timed(agent.timings_ms, "schedule"):
+            decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
+            slots = plan_transmissions(decision, self.agreement)
+        with timed(agent.timings_ms, "encoding"):
+            blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
+            txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]
+        with timed(self._link_data, "link"):
+            received = link.exchange_data(scan.tick, scan.t_sim_s, txs)
+        for key in ("link", "link_cpu"):  # both exchanges: encode, publish, wait, decode
+            agent.timings_ms[key] += self._link_data[key]
+        return [r.payload for r in received]
 
     def _emp(self, scan: Scan) -> np.ndarray | None:
         """Upload our Voronoi segment of the scan; return the relay's segments' points
@@ -242,8 +261,14 @@ class Pipeline:
                                                n_shared, plan.braking)))
 
     def timing_summary(self) -> dict[str, float]:
-        """The median of every stage's per-tick wall time, ms."""
-        return {k: round(float(np.median(v)), 3) for k, v in sorted(self.timings.items())}
+        """The median of every per-tick timing, ms (a stage's wall time, and its CPU
+        time as ``<stage>_cpu``), and the mean of the CPU times as ``<stage>_cpu_mean``:
+        the means add up to the agent's mean CPU per tick, which sets how many agents a
+        core can carry."""
+        out = {k: round(float(np.median(v)), 3) for k, v in sorted(self.timings.items())}
+        out.update({f"{k}_mean": round(float(np.mean(v)), 3) for k, v in sorted(self.timings.items())
+                    if k == "cpu" or k.endswith("_cpu")})
+        return out
 
 
 if __name__ == "__main__":

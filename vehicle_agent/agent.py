@@ -3,12 +3,15 @@
 perceive -> control message -> [schedule -> share] -> fuse -> plan -> control. The
 bracketed stages need the V2V channel; the process loop (``__main__``) runs them
 through the channel proxy, a test can run them through a perfect in-process channel.
-Every stage's wall time goes into ``timings_ms``.
+Every stage's wall time goes into ``timings_ms[stage]`` and the CPU time its thread
+spent into ``timings_ms[stage + "_cpu"]``: with more agent processes than cores the
+wall time counts the waits for a core, the CPU time is the stage's own cost.
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,43 +42,37 @@ class Agent:
     # ------------------------------------------------------------------ stages
 
     def perceive(self, scan: Scan, extra_world: np.ndarray | None = None) -> View:
-        t0 = time.perf_counter()
-        view = self.dataplane.perceive(scan, extra_world)
-        self.timings_ms = {"perception": (time.perf_counter() - t0) * 1e3}
-        return view
+        self.timings_ms = {}
+        with timed(self.timings_ms, "perception"):
+            return self.dataplane.perceive(scan, extra_world)
 
     def control_message(self, view: View, scan: Scan, heard: list[int]) -> ControlMsg:
         """What this vehicle broadcasts: pose, planned trajectory, object map."""
-        t0 = time.perf_counter()
-        traj = self.last_plan.trajectory if self.last_plan is not None else \
-            np.array([[scan.pose.x_m, scan.pose.y_m, scan.t_sim_s]], dtype=np.float32)
-        msg = self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard)
-        self.timings_ms["spatial_reasoning"] = (time.perf_counter() - t0) * 1e3
-        return msg
+        with timed(self.timings_ms, "spatial_reasoning"):
+            traj = self.last_plan.trajectory if self.last_plan is not None else \
+                np.array([[scan.pose.x_m, scan.pose.y_m, scan.t_sim_s]], dtype=np.float32)
+            return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard)
 
     def fuse(self, view: View, payloads: list[bytes]) -> FusedGrid:
-        t0 = time.perf_counter()
-        fused, _ = self.dataplane.fuse(view, payloads)
-        self.timings_ms["fusion"] = (time.perf_counter() - t0) * 1e3
-        return fused
+        with timed(self.timings_ms, "fusion"):
+            return self.dataplane.fuse(view, payloads)[0]
 
     def plan(self, view: View, fused: FusedGrid, scan: Scan) -> Plan:
-        t0 = time.perf_counter()
-        obstacles, moving = self._obstacles(view, fused)
-        plan = self.planner.run_step(view.grid, fused.state, moving, obstacles, scan.pose, scan.speed_mps,
-                                     scan.t_sim_s)
-        self.last_plan = plan
-        self.timings_ms["planning"] = (time.perf_counter() - t0) * 1e3
-        return plan
+        with timed(self.timings_ms, "planning"):
+            obstacles, moving = self._obstacles(view, fused)
+            plan = self.planner.run_step(view.grid, fused.state, moving, obstacles, scan.pose, scan.speed_mps,
+                                         scan.t_sim_s)
+            self.last_plan = plan
+            return plan
 
     def control(self, plan: Plan, scan: Scan) -> Command:
-        t0 = time.perf_counter()
-        steer = 0.0
-        if len(plan.path) >= 2:
-            _, steer = self.controller.run_step(scan.pose, scan.speed_mps, plan.path, self.mission.cruise_speed_mps)
-        accel = float(np.clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2, self.mission.spec.max_accel_mps2))
-        self.timings_ms["control"] = (time.perf_counter() - t0) * 1e3
-        return Command(scan.tick, scan.t_sim_s, self.mission.vid, accel, steer)
+        with timed(self.timings_ms, "control"):
+            steer = 0.0
+            if len(plan.path) >= 2:
+                _, steer = self.controller.run_step(scan.pose, scan.speed_mps, plan.path, self.mission.cruise_speed_mps)
+            accel = float(np.clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2,
+                                  self.mission.spec.max_accel_mps2))
+            return Command(scan.tick, scan.t_sim_s, self.mission.vid, accel, steer)
 
     def drive(self, view: View, fused: FusedGrid, scan: Scan) -> Command:
         """plan -> control."""
@@ -109,6 +106,16 @@ class Agent:
                                       float(np.arctan2(vel[i, 1], vel[i, 0]))))
         _mark(moving, grid, xy[np.repeat(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS, counts)])
         return obstacles, moving
+
+
+@contextmanager
+def timed(timings_ms: dict[str, float], stage: str):
+    """Record the block's wall time as ``stage`` and its thread's CPU time as
+    ``stage_cpu``, in ms (an exception records nothing)."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    yield
+    timings_ms[f"{stage}_cpu"] = (time.thread_time() - c0) * 1e3
+    timings_ms[stage] = (time.perf_counter() - t0) * 1e3
 
 
 def _mark(mask: np.ndarray, grid, xy: np.ndarray) -> None:

@@ -276,3 +276,49 @@ def test_batched_trajectory_sampling_equals_one_at_a_time():
         ref_pos, ref_head = sample_trajectory(w, times)
         np.testing.assert_allclose(pos[j], ref_pos, atol=1e-9)
         np.testing.assert_allclose(head[j], ref_head, atol=1e-12)
+
+
+def test_not_me_drops_what_others_saw_of_us_where_we_are_and_were():
+    """We (4.5 x 1.8 m, +0.5 m margin: |dx| <= 2.75, |dy| <= 1.4) are at (0, 0) heading
+    east and were at (-1, 0) a tick ago. Object 1 is all on our body: dropped. Object 2
+    merged us with a car 10 m ahead: our points go, the car's stay. Object 3 is 1.35 m
+    behind our rear, on where we were a tick ago: dropped. Object 4 is just clear."""
+    from vehicle_agent.fusion import SharedObject, not_me
+
+    def obj(k, pts):
+        return SharedObject((k, 0), np.array(pts, dtype=float), np.zeros(2), 0.0, True)
+
+    us = [[1.0, 0.5, 1.0], [-2.0, -1.0, 1.0], [2.7, 1.3, 0.5]]
+    car = [[10.0, 0.0, 1.0], [11.0, 0.5, 1.0], [12.0, -0.5, 1.0], [10.5, 0.0, 1.0], [11.5, 0.0, 1.0]]
+    out = not_me([obj(1, us), obj(2, us[:1] + car), obj(3, [[-3.5, 0.0, 1.0]]), obj(4, [[-3.8, 0.0, 1.0]])],
+                 [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8)
+    assert [o.key[0] for o in out] == [2, 4]
+    np.testing.assert_array_equal(out[0].points_world, car)
+
+
+def test_not_me_matches_testing_every_point_against_every_pose():
+    from vehicle_agent.fusion import SharedObject, not_me, on_body
+
+    def reference(shared, poses, length_m, width_m):
+        out = []
+        for o in shared:
+            mine = np.zeros(len(o.points_world), dtype=bool)
+            for pose in poses:
+                mine |= on_body(o.points_world, pose, length_m, width_m)
+            if mine.mean() >= 0.3:
+                continue
+            out.append((o.key, o.points_world[~mine]))
+        return out
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        poses = [Pose(float(x), float(y), float(h)) for x, y, h in
+                 np.cumsum(rng.normal(0.0, [1.0, 1.0, 0.1], (int(rng.integers(1, 12)), 3)), axis=0)]
+        shared = [SharedObject((1, i), np.column_stack([rng.normal(rng.uniform(-8, 8), 1.5, n),
+                                                       rng.normal(rng.uniform(-8, 8), 1.0, n), rng.uniform(0, 2, n)]),
+                               np.zeros(2), 0.0, True) for i, n in enumerate(rng.integers(1, 60, 20))]
+        got = [(o.key, o.points_world) for o in not_me(shared, poses, 4.5, 1.8)]
+        want = reference(shared, poses, 4.5, 1.8)
+        assert [k for k, _ in got] == [k for k, _ in want]
+        for (_, a), (_, b) in zip(got, want):
+            np.testing.assert_array_equal(a, b)

@@ -20,6 +20,7 @@ from vehicle_agent.perception import ABOVE, GROUND, Grid
 
 MAX_AGE_S = 1.0
 SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
+BODY_MARGIN_M = 0.5  # a point this close to our body's box is on it
 
 ObjectKey = tuple[int, int]  # (sender vid, object id)
 
@@ -68,7 +69,7 @@ class FusedGrid:
     same_as_own: dict[ObjectKey, bool]  # received object overlaps something the agent sees itself
 
 
-def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: float = 0.5) -> np.ndarray:
+def on_body(xy: np.ndarray, pose, length_m: float, width_m: float, margin_m: float = BODY_MARGIN_M) -> np.ndarray:
     """Which world points fall on a vehicle's body at ``pose`` (plus a margin)."""
     c, s = np.cos(pose.yaw_rad), np.sin(pose.yaw_rad)
     dx, dy = xy[:, 0] - pose.x_m, xy[:, 1] - pose.y_m
@@ -91,8 +92,19 @@ def not_me(shared: list[SharedObject], poses: list, length_m: float, width_m: fl
         return []
     pts, starts, _ = stack_points(shared)
     mine = np.zeros(len(pts), dtype=bool)
-    for pose in poses:  # a handful of poses, each test vectorized over every point
-        mine |= on_body(pts, pose, length_m, width_m)
+    if poses:
+        # only points within the box around all the poses, widened by the body's half
+        # diagonal (a point on the body at one of them lies inside it), are tested
+        reach = np.hypot(length_m / 2 + BODY_MARGIN_M, width_m / 2 + BODY_MARGIN_M)
+        px, py = np.array([p.x_m for p in poses]), np.array([p.y_m for p in poses])
+        x, y = pts[:, 0], pts[:, 1]
+        near = np.flatnonzero((x >= px.min() - reach) & (x <= px.max() + reach)
+                              & (y >= py.min() - reach) & (y <= py.max() + reach))
+        xy = pts[near, :2]
+        hit = np.zeros(len(near), dtype=bool)
+        for pose in poses:  # a handful of poses, each test vectorized over the nearby points
+            hit |= on_body(xy, pose, length_m, width_m, BODY_MARGIN_M)
+        mine[near] = hit
     share = np.add.reduceat(mine.astype(np.float64), starts) / np.diff(np.append(starts, len(pts)))
     out = []
     for o, start, frac in zip(shared, starts, share):

@@ -322,3 +322,39 @@ def test_not_me_matches_testing_every_point_against_every_pose():
         assert [k for k, _ in got] == [k for k, _ in want]
         for (_, a), (_, b) in zip(got, want):
             np.testing.assert_array_equal(a, b)
+
+
+def test_neighbor_table_places_older_messages_along_their_trajectories_like_interp():
+    """An older control message stands for where its trajectory puts the vehicle now
+    (np.interp, clamped at both ends) and the rest of its trajectory from there."""
+    from protocol.messages import ControlMsg, ObjectMap
+    from vehicle_agent.dataplane import NeighborTable
+
+    z = np.zeros(0, dtype=np.int64)
+    empty = ObjectMap(z, z, np.zeros((0, 2), np.float32), z, np.zeros((0, 0), np.float32),
+                      np.zeros((0, 0), np.float32))
+    rng = np.random.default_rng(5)
+    table = NeighborTable()
+    for vid in range(1, 40):
+        t_msg = float(rng.uniform(0.0, 2.0))
+        times = t_msg + np.sort(rng.choice(np.arange(0.0, 7.0, 0.5), int(rng.integers(1, 8)), replace=False))
+        traj = np.column_stack([rng.normal(0, 50, (len(times), 2)), times]).astype(np.float32)
+        table.update([ControlMsg(0, t_msg, vid, Pose(*rng.normal(0, 50, 2), 0.0), 5.0, traj, empty, z)])
+    for t_now in (0.0, 1.0, 2.0, 2.3, 3.5, 9.0):
+        got = {nb.vid: nb for nb in table.current(t_now, exclude=7)}
+        for vid, m in table.last.items():
+            if vid == 7 or t_now - m.t_sim_s > table.max_age_s:
+                assert vid not in got
+                continue
+            traj = np.asarray(m.trajectory, dtype=np.float64)
+            nb = got[vid]
+            if m.t_sim_s >= t_now - 1e-9 or len(traj) < 2:
+                np.testing.assert_array_equal(nb.xy, [m.pose.x_m, m.pose.y_m])
+                np.testing.assert_array_equal(nb.trajectory, traj)
+                continue
+            xy = [np.interp(t_now, traj[:, 2], traj[:, 0]), np.interp(t_now, traj[:, 2], traj[:, 1])]
+            ahead = traj[traj[:, 2] > t_now]
+            want = np.vstack([[*xy, t_now], ahead]) if len(ahead) else traj[-1:]
+            np.testing.assert_array_equal(nb.xy, xy)
+            np.testing.assert_array_equal(nb.trajectory, want)
+            assert not nb.fresh

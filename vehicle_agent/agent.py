@@ -100,10 +100,11 @@ class Agent:
         lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
         center, extent = (lo + hi) / 2, hi - lo
         vel = np.array([obj.velocity_xy for obj in shared], dtype=np.float64)
+        length = np.maximum(extent.max(axis=1), 1.0).tolist()
+        width = np.maximum(extent.min(axis=1), 1.0).tolist()
+        heading = np.arctan2(vel[:, 1], vel[:, 0]).tolist()
         for i in range(len(shared)):
-            obstacles.append(Obstacle(center[i], vel[i], float(max(extent[i].max(), 1.0)),
-                                      float(max(extent[i].min(), 1.0)), view.t_sim_s,
-                                      float(np.arctan2(vel[i, 1], vel[i, 0]))))
+            obstacles.append(Obstacle(center[i], vel[i], length[i], width[i], view.t_sim_s, heading[i]))
         _mark(moving, grid, xy[np.repeat(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS, counts)])
         return obstacles, moving
 

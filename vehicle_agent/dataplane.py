@@ -74,12 +74,25 @@ class NeighborTable:
                 continue
             traj = np.asarray(m.trajectory, dtype=np.float64)
             fresh = m.t_sim_s >= t_now_s - 1e-9
-            xy = np.array([m.pose.x_m, m.pose.y_m])
-            if not fresh and len(traj) >= 2:
-                xy = np.array([np.interp(t_now_s, traj[:, 2], traj[:, 0]), np.interp(t_now_s, traj[:, 2], traj[:, 1])])
-                ahead = traj[traj[:, 2] > t_now_s]
-                traj = np.vstack([[xy[0], xy[1], t_now_s], ahead]) if len(ahead) else traj[-1:]
-            out.append(NeighborState(vid, xy, traj, fresh))
+            if fresh or len(traj) < 2:
+                out.append(NeighborState(vid, np.array([m.pose.x_m, m.pose.y_m]), traj, fresh))
+                continue
+            # an older message: where its trajectory puts the vehicle now, and the rest of it
+            # (np.interp's clamping and formula, on the waypoints' increasing times)
+            t = traj[:, 2]
+            k = int(np.searchsorted(t, t_now_s, side="right"))  # the first waypoint after now
+            if k == len(t):
+                out.append(NeighborState(vid, traj[-1, :2].copy(), traj[-1:], fresh))
+                continue
+            if k == 0:
+                xy = traj[0, :2].copy()
+            else:
+                slope = (traj[k, :2] - traj[k - 1, :2]) / (t[k] - t[k - 1])
+                xy = slope * (t_now_s - t[k - 1]) + traj[k - 1, :2]
+            now = np.empty((len(t) - k + 1, 3))
+            now[0, :2], now[0, 2] = xy, t_now_s
+            now[1:] = traj[k:]
+            out.append(NeighborState(vid, xy, now, fresh))
         return out
 
 

@@ -215,13 +215,16 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     cy, sy = np.cos(yaw), np.sin(yaw)
     center = (mean + np.stack([cy, sy], 1) * ((u_hi + u_lo) / 2)[:, None]
               + np.stack([-sy, cy], 1) * ((v_hi + v_lo) / 2)[:, None])
+    # converted once for all objects; each object's points and cells are slices of these
+    pts32 = pts.astype(np.float32)
+    all_cells = np.stack([cell_order % n + grid.i0, cell_order // n + grid.j0], axis=1).astype(np.int64)
+    centroid = np.column_stack([center, z_mean])
+    length, width = (u_hi - u_lo).tolist(), (v_hi - v_lo).tolist()
+    yaws = yaw.tolist()
     objects = []
-    for o, lab in enumerate(np.flatnonzero(nonempty)):
-        flat = cell_order[cell_bounds[lab]:cell_bounds[lab + 1]]
-        cells = np.stack([flat % n + grid.i0, flat // n + grid.j0], axis=1).astype(np.int64)
-        objects.append(DetectedObject(pts[bounds[lab]:bounds[lab + 1]].astype(np.float32), cells,
-                                      np.array([center[o, 0], center[o, 1], z_mean[o]]), float(yaw[o]),
-                                      float(u_hi[o] - u_lo[o]), float(v_hi[o] - v_lo[o])))
+    for o, lab in enumerate(np.flatnonzero(nonempty).tolist()):
+        objects.append(DetectedObject(pts32[bounds[lab]:bounds[lab + 1]], all_cells[cell_bounds[lab]:cell_bounds[lab + 1]],
+                                      centroid[o], yaws[o], length[o], width[o]))
     return objects
 
 

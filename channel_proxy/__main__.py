@@ -1,8 +1,8 @@
 """The V2V channel proxy: ``python -m channel_proxy --run-id RUN --connect HUB``.
 
-Agents publish on ``net/ctrl/tx/<vid>`` and ``net/data/tx/<vid>``; the proxy delivers
-on ``net/ctrl/rx/<vid>`` and ``net/data/rx/<vid>`` what each receiver hears, one bundle
-per receiver per phase, and publishes per-interval statistics on ``net/stats``. It
+Agents publish on ``net/ctrl/tx/<vid>`` and ``net/data/tx/<vid>``; the proxy publishes
+on ``net/ctrl/rx`` and ``net/data/rx`` one bundle per phase with every message once and
+which receiver heard (decoded) which, and per-interval statistics on ``net/stats``. It
 follows the world's ticks (``world/tick``). ``--mode emp`` plays the EMP edge relay
 instead (``net/emp/up/<vid>`` -> ``net/emp/down/<vid>``).
 """

@@ -11,28 +11,48 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
 from protocol import keys
 from protocol.codec import decode, encode
-from protocol.messages import ChannelStats, CtrlBundle, DataBundle, EmpBundle, Tick
+from protocol.messages import ChannelStats, CtrlBundle, DataBundle, EmpBundle, Reception, Tick
 from protocol.session import big_publisher
 
 
+@dataclass(frozen=True)
+class Heard:
+    """One receiver's row of a ``CtrlBundle``: the raw control messages it heard."""
+
+    tick: int
+    receiver: int
+    messages: list[bytes]
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """One receiver's row of a ``DataBundle``: what it decoded, by reception time."""
+
+    tick: int
+    receiver: int
+    receptions: list[Reception]
+
+
 class Harness:
-    """Publishes ticks and vehicles' messages; records bundles and stats by tick."""
+    """Publishes ticks and vehicles' messages; records bundles and stats by tick, the
+    bundles also split per receiver (``ctrl[k][vid]``, ``data[k][vid]``)."""
 
     def __init__(self, session: zenoh.Session, run_id: str, vids: Iterable[int], *, emp: bool = False) -> None:
         self.session = session
         self.run = run_id
         self.vids = sorted(int(v) for v in vids)
         self._cv = threading.Condition()
-        self.ctrl: dict[int, dict[int, CtrlBundle]] = defaultdict(dict)
-        self.ctrl_raw: dict[int, dict[int, bytes]] = defaultdict(dict)
-        self.data: dict[int, dict[int, DataBundle]] = defaultdict(dict)
-        self.data_raw: dict[int, dict[int, bytes]] = defaultdict(dict)
+        self.ctrl: dict[int, dict[int, Heard]] = defaultdict(dict)
+        self.ctrl_raw: dict[int, bytes] = {}  # the bundle as published, by tick
+        self.data: dict[int, dict[int, Decoded]] = defaultdict(dict)
+        self.data_raw: dict[int, bytes] = {}
         self.emp: dict[int, dict[int, EmpBundle]] = defaultdict(dict)
         self.stats: dict[int, dict[str, Any]] = {}
         s, run = session, run_id
@@ -41,8 +61,8 @@ class Harness:
             self._subs.append(s.declare_subscriber(keys.net_emp_down(run, "*"), self._on(EmpBundle, self._emp)))
         else:
             self._subs += [
-                s.declare_subscriber(keys.net_ctrl_rx(run, "*"), self._on(CtrlBundle, self._ctrl)),
-                s.declare_subscriber(keys.net_data_rx(run, "*"), self._on(DataBundle, self._data)),
+                s.declare_subscriber(keys.net_ctrl_rx(run), self._on(CtrlBundle, self._ctrl)),
+                s.declare_subscriber(keys.net_data_rx(run), self._on(DataBundle, self._data)),
             ]
         self._tick_pub = s.declare_publisher(keys.world_tick(run))
         self._pubs: dict[str, zenoh.Publisher] = {}
@@ -60,12 +80,12 @@ class Harness:
         self.stats[m.tick] = m.stats
 
     def _ctrl(self, m: CtrlBundle, raw: bytes) -> None:
-        self.ctrl[m.tick][m.receiver] = m
-        self.ctrl_raw[m.tick][m.receiver] = raw
+        self.ctrl[m.tick] = {v: Heard(m.tick, v, m.heard_by(v)) for v in m.receivers.tolist()}
+        self.ctrl_raw[m.tick] = raw
 
     def _data(self, m: DataBundle, raw: bytes) -> None:
-        self.data[m.tick][m.receiver] = m
-        self.data_raw[m.tick][m.receiver] = raw
+        self.data[m.tick] = {v: Decoded(m.tick, v, m.received_by(v)) for v in m.receivers.tolist()}
+        self.data_raw[m.tick] = raw
 
     def _emp(self, m: EmpBundle, raw: bytes) -> None:
         self.emp[m.tick][m.receiver] = m
@@ -119,13 +139,13 @@ class Harness:
                     raise TimeoutError("the proxy did not deliver in time")
                 self._cv.wait(left)
 
-    def wait_ctrl(self, k: int, receivers: Iterable[int] | None = None, timeout_s: float = 20.0) -> dict[int, CtrlBundle]:
+    def wait_ctrl(self, k: int, receivers: Iterable[int] | None = None, timeout_s: float = 20.0) -> dict[int, Heard]:
         want = set(self.vids if receivers is None else receivers)
         self._wait(lambda: want <= set(self.ctrl.get(k, {})), timeout_s)
         with self._cv:
             return dict(self.ctrl[k])
 
-    def wait_data(self, k: int, receivers: Iterable[int] | None = None, timeout_s: float = 20.0) -> dict[int, DataBundle]:
+    def wait_data(self, k: int, receivers: Iterable[int] | None = None, timeout_s: float = 20.0) -> dict[int, Decoded]:
         want = set(self.vids if receivers is None else receivers)
         self._wait(lambda: want <= set(self.data.get(k, {})), timeout_s)
         with self._cv:

@@ -5,10 +5,11 @@ One interval (tick k), lock-step:
 1. the world's ``Tick`` opens tick k and names the live vehicles;
 2. control phase: wait until every expected vehicle has sent its ``ControlMsg`` for k
    (or a wall-clock timeout, or the world's next tick); play the control channel;
-   publish one ``CtrlBundle`` per live receiver (it closes that receiver's phase);
+   publish one ``CtrlBundle``: every message once, and who heard which (it closes the
+   phase for every receiver);
 3. data phase: wait likewise for a ``DataTx`` from every vehicle that took part in
-   the control phase; play the data channel; publish one ``DataBundle`` per live
-   receiver, then ``ChannelStats``.
+   the control phase; play the data channel; publish one ``DataBundle`` (every
+   decoded payload once, and who decoded which), then ``ChannelStats``.
 
 Expected vehicles: the tick's live set minus the dead. A vehicle that misses a phase is
 absent for that tick; after ``dead_after`` absences in a row it is dead and no longer
@@ -29,7 +30,6 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any
 
-import msgpack
 import numpy as np
 import zenoh
 
@@ -38,7 +38,7 @@ from channel_proxy.profiles import ChannelProfile
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
-                               EmpUpload, Outcome, Tick)
+                               EmpUpload, Outcome, Reception, Tick)
 from protocol.session import DropCounter, big_publisher
 
 log = logging.getLogger(__name__)
@@ -333,11 +333,9 @@ class ChannelProxy:
         sizes = np.array([_ctrl_onair(ctrl[v][0]) for v in senders.tolist()], dtype=np.int64)
         out = medium.play_control(live, s_idx, sizes, loss.link_probabilities(xy, profile.prr, self.cfg.ctrl_loss),
                                   reach, capacity_bytes=profile.ctrl_capacity_bytes, seed=self.cfg.seed, tick=k)
-        packed = [msgpack.packb(ctrl[v][1], use_bin_type=True) for v in senders.tolist()]
-        for c, receiver in enumerate(live.tolist()):
-            heard = np.flatnonzero(out.heard[:, c])
-            self._pub(keys.net_ctrl_rx(run, receiver)).put(
-                bundle_bytes(CtrlBundle, k, tick.t_sim_s, receiver, [packed[s] for s in heard.tolist()]))
+        self._pub(keys.net_ctrl_rx(run)).put(encode(CtrlBundle(k, tick.t_sim_s, senders, live,
+                                                               np.ascontiguousarray(out.heard.T),
+                                                               [ctrl[v][1] for v in senders.tolist()])))
         ctrl_stats = {
             "senders": len(senders),
             "offered_bytes": int(sizes.sum()),
@@ -384,12 +382,12 @@ class ChannelProxy:
                                seed=self.cfg.seed, tick=k)
         rx_s = out.end_ns / medium.NS
         order = np.lexsort((item, live[sender] if len(txs) else sender, out.end_ns))  # by time, sender, object
-        packed = [msgpack.packb([int(live[sender[t]]), int(item[t]), float(rx_s[t]), txs[t][1].payload],
-                                use_bin_type=True) if out.delivered[t].any() else b"" for t in range(len(txs))]
-        for c, receiver in enumerate(live.tolist()):
-            got = order[out.delivered[order, c]]
-            self._pub(keys.net_data_rx(run, receiver)).put(
-                bundle_bytes(DataBundle, k, tick.t_sim_s, receiver, [packed[t] for t in got.tolist()]))
+        order = order[out.delivered[order].any(axis=1)]  # what somebody decoded
+        receptions = [Reception(int(live[sender[t]]), int(item[t]), float(rx_s[t]), txs[t][1].payload)
+                      for t in order.tolist()]
+        self._pub(keys.net_data_rx(run)).put(encode(DataBundle(k, tick.t_sim_s, live,
+                                                               np.ascontiguousarray(out.delivered[order].T),
+                                                               receptions)))
         size_col = size[:, None]
         sent = ~out.overflow
         return {
@@ -455,24 +453,6 @@ class ChannelProxy:
         }}
         self._publish_stats(tick, stats, t_work)
         self._done_tick = k
-
-
-def _array_header(n: int) -> bytes:
-    """msgpack's array header for n elements."""
-    if n < 16:
-        return bytes([0x90 | n])
-    if n < 1 << 16:
-        return b"\xdc" + n.to_bytes(2, "big")
-    return b"\xdd" + n.to_bytes(4, "big")
-
-
-def bundle_bytes(cls: type, tick: int, t_sim_s: float, receiver: int, packed_items: list[bytes]) -> bytes:
-    """``encode(cls(tick, t_sim_s, receiver, items))`` for a bundle message, from items
-    msgpack-packed once per interval: a bundle is mostly the same items for every
-    receiver, so each is packed once and joined per receiver rather than re-packed 40
-    times (the wire bytes are identical; a test checks it against ``encode``)."""
-    head = msgpack.packb([cls.TYPE_ID, cls.VERSION, int(tick), float(t_sim_s), int(receiver)], use_bin_type=True)
-    return b"".join([_array_header(6), head[1:], _array_header(len(packed_items)), *packed_items])
 
 
 def _ctrl_onair(msg: ControlMsg) -> int:

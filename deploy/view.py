@@ -359,7 +359,8 @@ class Scene:
             show_labels=False))
 
     def ctrl_bundle(self, b: CtrlBundle) -> None:
-        self.scalar(f"vehicles/{b.receiver}/heard", len(b.messages))
+        for receiver, heard in zip(b.receivers.tolist(), b.heard.sum(axis=1).tolist()):
+            self.scalar(f"vehicles/{receiver}/heard", heard)
 
     def report(self, r: AgentReport) -> None:
         self.rec.log(f"world/vehicles/{r.vid}/fused", rr.Points3D(xy_to_3d(r.fused_xy, 0.05), colors=[FUSED_COLOR],
@@ -379,13 +380,16 @@ class Scene:
             self.rec.log("schedule/tx", rr.TextLog(f"tick {d.tick} v{d.vid}: {slots}"))
 
     def data_bundle(self, b: DataBundle) -> None:
-        """The receiver's decoded objects, in the world frame (T_s V_s of each sender)."""
-        parts = []
+        """Each receiver's decoded objects, in the world frame (T_s V_s of each sender)."""
+        world = []  # each reception decoded once, shared by the receivers that got it
         for r in b.receptions:
             obj = decode_object(r.payload)
-            parts.append(sensor_to_world(obj.points_sensor, obj.sender_pose, obj.mount_height_m))
-        self.received(b.receiver, parts)
-        self.scalar(f"schedule/rx_bytes/{b.receiver}", sum(len(r.payload) for r in b.receptions))
+            world.append(sensor_to_world(obj.points_sensor, obj.sender_pose, obj.mount_height_m))
+        size = np.array([len(r.payload) for r in b.receptions], dtype=np.int64)
+        for receiver, row in zip(b.receivers.tolist(), b.decoded):
+            got = np.flatnonzero(row).tolist()
+            self.received(receiver, [world[t] for t in got])
+            self.scalar(f"schedule/rx_bytes/{receiver}", int(size[got].sum()))
 
     def received(self, vid: int, parts: list[np.ndarray]) -> None:
         points = np.vstack(parts) if parts else np.zeros((0, 3))

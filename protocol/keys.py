@@ -67,17 +67,18 @@ def net_ctrl_tx(run: str, vid: int | str) -> str:
     return f"{_run(run)}/net/ctrl/tx/{_vid(vid)}"
 
 
-def net_ctrl_rx(run: str, vid: int | str) -> str:
-    """The control messages a vehicle heard, out of the channel proxy."""
-    return f"{_run(run)}/net/ctrl/rx/{_vid(vid)}"
+def net_ctrl_rx(run: str) -> str:
+    """Who heard which control message, out of the channel proxy (one for all receivers)."""
+    return f"{_run(run)}/net/ctrl/rx"
 
 
 def net_data_tx(run: str, vid: int | str) -> str:
     return f"{_run(run)}/net/data/tx/{_vid(vid)}"
 
 
-def net_data_rx(run: str, vid: int | str) -> str:
-    return f"{_run(run)}/net/data/rx/{_vid(vid)}"
+def net_data_rx(run: str) -> str:
+    """Who decoded which object payload, out of the channel proxy (one for all receivers)."""
+    return f"{_run(run)}/net/data/rx"
 
 
 def net_stats(run: str) -> str:

@@ -211,15 +211,42 @@ class ControlMsg:
     heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
 
 
-@message(8)
+@message(8, version=2)
 class CtrlBundle:
-    """The control messages one receiver heard this interval (raw ``ControlMsg`` bytes);
-    its arrival closes the control phase for that receiver."""
+    """The control phase's outcome for all receivers at once: the raw ``ControlMsg`` of
+    every sender, and which receiver heard which. One radio broadcast is heard by many,
+    so the proxy publishes one bundle per interval rather than a copy of the same
+    messages per receiver; a receiver takes its row (``heard_by``). Its arrival closes
+    the control phase."""
 
     tick: int
     t_sim_s: float
-    receiver: int
-    messages: list[bytes]
+    senders: np.ndarray  # int64 (S,), ascending
+    receivers: np.ndarray  # int64 (C,), ascending: the interval's live vehicles
+    heard: np.ndarray  # bool (C, S): receiver c heard sender s
+    messages: list[bytes]  # (S,) each sender's raw ControlMsg
+
+    def __post_init__(self) -> None:
+        _check_mask("heard", self.heard, self.receivers, len(self.senders))
+        if len(self.messages) != len(self.senders):
+            raise ValueError(f"{len(self.messages)} messages for {len(self.senders)} senders")
+
+    def heard_by(self, vid: int) -> list[bytes] | None:
+        """The raw control messages ``vid`` heard; None if it is not a receiver."""
+        row = _row_of(self.receivers, vid)
+        return None if row is None else [self.messages[s] for s in np.flatnonzero(self.heard[row]).tolist()]
+
+
+def _row_of(receivers: np.ndarray, vid: int) -> int | None:
+    row = int(np.searchsorted(receivers, vid))
+    return row if row < len(receivers) and receivers[row] == vid else None
+
+
+def _check_mask(name: str, mask: np.ndarray, receivers: np.ndarray, columns: int) -> None:
+    if mask.dtype != np.bool_ or mask.shape != (len(receivers), columns):
+        raise ValueError(f"{name} must be bool ({len(receivers)}, {columns}), got {mask.dtype} {mask.shape}")
+    if len(receivers) > 1 and not np.all(receivers[1:] > receivers[:-1]):
+        raise ValueError("receivers must be ascending")
 
 
 @record
@@ -250,14 +277,25 @@ class Reception:
     payload: bytes
 
 
-@message(10)
+@message(10, version=2)
 class DataBundle:
-    """What one receiver decoded on the data channel this interval; closes its data phase."""
+    """The data phase's outcome for all receivers at once: every reception, ordered by
+    reception time (then sender, object), and which receiver decoded which. Published
+    once per interval (``received_by`` gives one receiver's); closes the data phase."""
 
     tick: int
     t_sim_s: float
-    receiver: int
-    receptions: list[Reception]
+    receivers: np.ndarray  # int64 (C,), ascending: the interval's live vehicles
+    decoded: np.ndarray  # bool (C, T): receiver c decoded reception t
+    receptions: list[Reception]  # (T,) the transmissions somebody decoded
+
+    def __post_init__(self) -> None:
+        _check_mask("decoded", self.decoded, self.receivers, len(self.receptions))
+
+    def received_by(self, vid: int) -> list[Reception] | None:
+        """What ``vid`` decoded, by reception time; None if it is not a receiver."""
+        row = _row_of(self.receivers, vid)
+        return None if row is None else [self.receptions[t] for t in np.flatnonzero(self.decoded[row]).tolist()]
 
 
 @message(11)

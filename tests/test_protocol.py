@@ -97,3 +97,26 @@ def test_keys_follow_the_schema_and_refuse_bad_parts():
         keys.scan("bad/run", 1)
     with pytest.raises(ValueError):
         keys.scan("r", -1)
+
+
+def test_a_bundle_gives_each_receiver_its_row_and_refuses_a_mask_that_does_not_fit():
+    from protocol.messages import CtrlBundle, DataBundle, Reception
+
+    heard = np.array([[False, True, True], [True, False, False]])  # receivers 2 and 5; senders 1, 2, 5
+    b = decode(encode(CtrlBundle(4, 0.4, np.array([1, 2, 5]), np.array([2, 5]), heard, [b"a", b"b", b"c"])), CtrlBundle)
+    assert b.heard_by(2) == [b"b", b"c"] and b.heard_by(5) == [b"a"] and b.heard_by(1) is None
+    rx = [Reception(1, 7, 0.01, b"x"), Reception(5, 3, 0.02, b"y")]
+    d = decode(encode(DataBundle(4, 0.4, np.array([2, 5]), np.array([[True, True], [False, False]]), rx)), DataBundle)
+    assert d.received_by(2) == rx and d.received_by(5) == [] and d.received_by(3) is None
+    for bad in (heard[:, :2], heard.astype(np.uint8)):
+        with pytest.raises(MalformedMessage, match="heard must be bool"):
+            decode(_bundle_bytes(bad), CtrlBundle)
+    with pytest.raises(MalformedMessage, match="receivers must be ascending"):
+        decode(_bundle_bytes(heard, receivers=[5, 2]), CtrlBundle)
+
+
+def _bundle_bytes(heard, receivers=(2, 5)):
+    """A CtrlBundle's wire bytes built by hand, bypassing the constructor's checks."""
+    arr = lambda a: [a.dtype.str, list(a.shape), a.tobytes()]  # noqa: E731
+    return msgpack.packb([8, 2, 4, 0.4, arr(np.array([1, 2, 5])), arr(np.array(receivers)), arr(np.asarray(heard)),
+                          [b"a", b"b", b"c"]], use_bin_type=True)

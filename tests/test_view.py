@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 from rerun.chunk import RrdReader
@@ -140,7 +141,8 @@ def test_a_corrupted_message_is_counted_and_skipped(run_mcap, tmp_path):
     broken = [
         (topic, payload[: len(payload) // 2], t),  # a valid envelope, a truncated body
         (keys.cmd(RUN, 2), b"\xc1 not msgpack", t),  # garbage: recorded on a schemaless channel
-        (keys.net_data_rx(RUN, 0), encode(DataBundle(3, 0.3, 0, [Reception(1, 7, 0.01, b"junk")])), t),  # bad object
+        (keys.net_data_rx(RUN), encode(DataBundle(3, 0.3, np.array([0]), np.ones((1, 1), dtype=bool),
+                                                  [Reception(1, 7, 0.01, b"junk")])), t),  # bad object
     ]
     path = tmp_path / "corrupt.mcap"
     with open(path, "wb") as f:
@@ -157,7 +159,7 @@ def test_a_corrupted_message_is_counted_and_skipped(run_mcap, tmp_path):
     stats = build(path, rec)
     rec.disconnect()
     assert stats.malformed == 3 and stats.messages == len(raw) + 1  # the bundle decoded; its object did not
-    assert set(stats.malformed_topics) == {topic, keys.cmd(RUN, 2), keys.net_data_rx(RUN, 0)}
+    assert set(stats.malformed_topics) == {topic, keys.cmd(RUN, 2), keys.net_data_rx(RUN)}
     assert "/world/vehicles/1/box" in set(RrdReader(rrd).store().schema().entity_paths())
 
 

@@ -1,9 +1,11 @@
 """The agent's side of the V2V channel: it talks only to the channel proxy.
 
-Per interval: publish the control message, wait for the ``CtrlBundle`` (what this
-vehicle heard), publish the ``DataTx`` (its scheduled objects, possibly none), wait
-for the ``DataBundle`` (what it decoded). A bundle that does not come within the
-timeout counts as hearing nothing, so a dead proxy degrades sharing, never the run.
+Per interval: publish the control message, wait for the ``CtrlBundle`` (one for all
+receivers: this vehicle takes the messages it heard), publish the ``DataTx`` (its
+scheduled objects, possibly none), wait for the ``DataBundle`` (likewise, what it
+decoded). A bundle that does not come within the timeout, or that does not list this
+vehicle as a receiver, counts as hearing nothing, so a dead proxy degrades sharing,
+never the run.
 In the EMP scheme the same two-step shape carries the Voronoi-segment upload to the
 edge relay and the relay's forwarded segments.
 """
@@ -62,8 +64,8 @@ class V2VLink:
         self.missed_bundles = 0
         self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
         self._subs = [
-            session.declare_subscriber(keys.net_ctrl_rx(run, vid), _into(self._ctrl, CtrlBundle, drops)),
-            session.declare_subscriber(keys.net_data_rx(run, vid), _into(self._data, DataBundle, drops)),
+            session.declare_subscriber(keys.net_ctrl_rx(run), _into(self._ctrl, CtrlBundle, drops)),
+            session.declare_subscriber(keys.net_data_rx(run), _into(self._data, DataBundle, drops)),
             session.declare_subscriber(keys.net_emp_down(run, vid), _into(self._emp, EmpBundle, drops)),
         ]
         self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
@@ -85,11 +87,12 @@ class V2VLink:
         """Broadcast our control message; return the ones we heard this interval."""
         self._ctrl_pub.put(encode(msg))
         bundle = self._take(self._ctrl, msg.tick)
-        if bundle is None:
+        mine = bundle.heard_by(self.vid) if bundle is not None else None
+        if mine is None:
             self.missed_bundles += 1
             return []
         heard = []
-        for raw in bundle.messages:
+        for raw in mine:
             try:
                 heard.append(decode(raw, ControlMsg))
             except MalformedMessage as err:
@@ -100,10 +103,11 @@ class V2VLink:
         """Transmit our scheduled objects; return what we decoded this interval."""
         self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
         bundle = self._take(self._data, tick)
-        if bundle is None:
+        mine = bundle.received_by(self.vid) if bundle is not None else None
+        if mine is None:
             self.missed_bundles += 1
             return []
-        return list(bundle.receptions)
+        return mine
 
     def exchange_emp(self, tick: int, t_sim_s: float, pose: Pose, segment_world: np.ndarray) -> EmpBundle | None:
         """Upload our Voronoi segment to the edge relay; return what it forwarded to us."""

@@ -358,3 +358,43 @@ def test_neighbor_table_places_older_messages_along_their_trajectories_like_inte
             np.testing.assert_array_equal(nb.xy, xy)
             np.testing.assert_array_equal(nb.trajectory, want)
             assert not nb.fresh
+
+
+def test_fuse_matches_the_numpy_formulation_on_random_objects():
+    from vehicle_agent.fusion import SharedObject, fuse
+
+    def reference(grid, shared):
+        state, received = grid.state.copy(), np.zeros_like(grid.drivable)
+        pts = np.concatenate([o.points_world for o in shared])
+        owner = np.repeat(np.arange(len(shared)), [len(o.points_world) for o in shared])
+        n = state.shape[0]
+        rc = grid.cell_of(pts[:, :2])
+        use = (pts[:, 2] > grid.spec.ground_clear_m) & (rc >= 0).all(axis=1) & (rc < n).all(axis=1)
+        r, c = rc[use, 0], rc[use, 1]
+        own = grid.state[r, c] == ABOVE
+        on_own = np.bincount(owner[use], weights=own, minlength=len(shared)) > 0
+        received[r[~own], c[~own]] = True
+        state[r, c] = ABOVE
+        return state, received, {o.key: bool(h) for o, h in zip(shared, on_own)}
+
+    rng = np.random.default_rng(11)
+    spec = GridSpec(half_extent_m=20.0)
+    n = spec.cells
+    for _ in range(30):
+        state = rng.choice([GROUND, ABOVE, EMPTY], size=(n, n), p=[0.6, 0.2, 0.2]).astype(np.uint8)
+        grid = Grid(spec, int(rng.integers(-100, 100)), int(rng.integers(-100, 100)), state, np.ones((n, n), bool))
+        cx, cy = grid.origin_xy
+        shared = []
+        for k in range(int(rng.integers(1, 12))):
+            m = int(rng.integers(1, 200))
+            pts = np.column_stack([cx + rng.uniform(-5, 45, m), cy + rng.uniform(-5, 45, m), rng.uniform(-0.5, 2, m)])
+            if k == 0:
+                pts[0] = [np.nan, cy + 1.0, 1.0]  # a corrupt point is ignored, not placed
+            shared.append(SharedObject((k, 0), pts, np.zeros(2), 0.0, True))
+        got = fuse(grid, shared)
+        state_ref, received_ref, same_ref = reference(grid, [o if o.key[0] else
+                                                             SharedObject(o.key, o.points_world[1:], o.velocity_xy,
+                                                                          o.age_s, o.fresh) for o in shared])
+        np.testing.assert_array_equal(got.state, state_ref)
+        np.testing.assert_array_equal(got.received, received_ref)
+        assert got.same_as_own == same_ref

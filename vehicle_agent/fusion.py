@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.payload import ObjectPayload
@@ -142,14 +143,32 @@ def fuse(grid: Grid, shared: list[SharedObject]) -> FusedGrid:
     if not shared:
         return FusedGrid(grid, state, received, {})
     pts, _, counts = stack_points(shared)
-    owner = np.repeat(np.arange(len(shared)), counts)
-    n = state.shape[0]
-    rc = grid.cell_of(pts[:, :2])
-    use = ((pts[:, 2] > grid.spec.ground_clear_m) & (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0)
-           & (rc[:, 1] < n))
-    r, c = rc[use, 0], rc[use, 1]
-    own = grid.state[r, c] == ABOVE
-    on_own = np.bincount(owner[use], weights=own, minlength=len(shared)) > 0
-    received[r[~own], c[~own]] = True
-    state[r, c] = ABOVE
-    return FusedGrid(grid, state, received, {o.key: bool(hit) for o, hit in zip(shared, on_own)})
+    on_own = np.zeros(len(shared), dtype=np.bool_)
+    _fuse_points(pts, counts, grid.i0, grid.j0, grid.spec.cell_m, grid.spec.ground_clear_m, grid.state, state,
+                 received, on_own)
+    return FusedGrid(grid, state, received, {o.key: hit for o, hit in zip(shared, on_own.tolist())})
+
+
+@njit(cache=True)
+def _fuse_points(pts, counts, i0, j0, cell_m, clear_m, own, state, received, on_own):
+    """One pass over the stacked points (``counts[o]`` of object o in turn): a point
+    above the ground in a grid cell sets it ABOVE in ``state``; it is ``received`` when
+    our own grid did not have it ABOVE, and its object is ``on_own`` when it did."""
+    n = own.shape[0]
+    p = 0
+    for o in range(len(counts)):
+        for _ in range(counts[o]):
+            x, y, z = pts[p, 0], pts[p, 1], pts[p, 2]
+            p += 1
+            if not z > clear_m:
+                continue
+            col = np.floor(x / cell_m) - i0
+            row = np.floor(y / cell_m) - j0
+            if not (0 <= row < n and 0 <= col < n):  # also refuses NaN
+                continue
+            r, c = int(row), int(col)
+            if own[r, c] == ABOVE:
+                on_own[o] = True
+            else:
+                received[r, c] = True
+            state[r, c] = ABOVE

@@ -239,7 +239,7 @@ def test_received_points_land_in_the_receivers_grid():
 def test_fusion_marks_received_cells_and_which_objects_we_see_ourselves():
     """Own grid: one ABOVE cell at (10.25, 0.25). Object A covers it and the cell east of
     it, object B a cell of its own plus a ground-height point, object C lies off the grid."""
-    from vehicle_agent.fusion import SharedObject, fuse
+    from vehicle_agent.fusion import SharedBatch, SharedObject, fuse
 
     spec = GridSpec(half_extent_m=20.0)
     n = spec.cells
@@ -250,13 +250,14 @@ def test_fusion_marks_received_cells_and_which_objects_we_see_ourselves():
     pts = {"A": [[10.25, 0.25, 1.0], [10.75, 0.25, 1.0]], "B": [[-5.25, 3.25, 1.0], [-8.0, 3.0, 0.1]],
            "C": [[60.0, 0.0, 1.0]]}
     shared = [SharedObject((i, 0), np.array(p), np.zeros(2), 0.0, True) for i, p in enumerate(pts.values())]
-    fused = fuse(grid, shared)
+    fused = fuse(grid, SharedBatch.of(shared))
     cells = lambda *xy: [tuple(grid.cell_of(np.array(p))) for p in xy]  # noqa: E731
     assert sorted(zip(*np.nonzero(fused.received))) == sorted(cells([10.75, 0.25], [-5.25, 3.25]))
     assert sorted(zip(*np.nonzero(fused.state == ABOVE))) == sorted(cells([10.25, 0.25], [10.75, 0.25],
                                                                             [-5.25, 3.25]))
     assert fused.same_as_own == {(0, 0): True, (1, 0): False, (2, 0): False}
-    assert fuse(grid, []).same_as_own == {} and not fuse(grid, []).received.any()
+    none = fuse(grid, SharedBatch.of([]))
+    assert none.same_as_own == {} and not none.received.any()
 
 
 def test_batched_trajectory_sampling_equals_one_at_a_time():
@@ -283,21 +284,22 @@ def test_not_me_drops_what_others_saw_of_us_where_we_are_and_were():
     east and were at (-1, 0) a tick ago. Object 1 is all on our body: dropped. Object 2
     merged us with a car 10 m ahead: our points go, the car's stay. Object 3 is 1.35 m
     behind our rear, on where we were a tick ago: dropped. Object 4 is just clear."""
-    from vehicle_agent.fusion import SharedObject, not_me
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me
 
     def obj(k, pts):
         return SharedObject((k, 0), np.array(pts, dtype=float), np.zeros(2), 0.0, True)
 
     us = [[1.0, 0.5, 1.0], [-2.0, -1.0, 1.0], [2.7, 1.3, 0.5]]
     car = [[10.0, 0.0, 1.0], [11.0, 0.5, 1.0], [12.0, -0.5, 1.0], [10.5, 0.0, 1.0], [11.5, 0.0, 1.0]]
-    out = not_me([obj(1, us), obj(2, us[:1] + car), obj(3, [[-3.5, 0.0, 1.0]]), obj(4, [[-3.8, 0.0, 1.0]])],
-                 [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8)
+    out = not_me(SharedBatch.of([obj(1, us), obj(2, us[:1] + car), obj(3, [[-3.5, 0.0, 1.0]]),
+                                 obj(4, [[-3.8, 0.0, 1.0]])]),
+                 [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8).objects()
     assert [o.key[0] for o in out] == [2, 4]
     np.testing.assert_array_equal(out[0].points_world, car)
 
 
 def test_not_me_matches_testing_every_point_against_every_pose():
-    from vehicle_agent.fusion import SharedObject, not_me, on_body
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me, on_body
 
     def reference(shared, poses, length_m, width_m):
         out = []
@@ -317,7 +319,7 @@ def test_not_me_matches_testing_every_point_against_every_pose():
         shared = [SharedObject((1, i), np.column_stack([rng.normal(rng.uniform(-8, 8), 1.5, n),
                                                        rng.normal(rng.uniform(-8, 8), 1.0, n), rng.uniform(0, 2, n)]),
                                np.zeros(2), 0.0, True) for i, n in enumerate(rng.integers(1, 60, 20))]
-        got = [(o.key, o.points_world) for o in not_me(shared, poses, 4.5, 1.8)]
+        got = [(o.key, o.points_world) for o in not_me(SharedBatch.of(shared), poses, 4.5, 1.8).objects()]
         want = reference(shared, poses, 4.5, 1.8)
         assert [k for k, _ in got] == [k for k, _ in want]
         for (_, a), (_, b) in zip(got, want):
@@ -361,7 +363,7 @@ def test_neighbor_table_places_older_messages_along_their_trajectories_like_inte
 
 
 def test_fuse_matches_the_numpy_formulation_on_random_objects():
-    from vehicle_agent.fusion import SharedObject, fuse
+    from vehicle_agent.fusion import SharedBatch, SharedObject, fuse
 
     def reference(grid, shared):
         state, received = grid.state.copy(), np.zeros_like(grid.drivable)
@@ -391,10 +393,64 @@ def test_fuse_matches_the_numpy_formulation_on_random_objects():
             if k == 0:
                 pts[0] = [np.nan, cy + 1.0, 1.0]  # a corrupt point is ignored, not placed
             shared.append(SharedObject((k, 0), pts, np.zeros(2), 0.0, True))
-        got = fuse(grid, shared)
+        got = fuse(grid, SharedBatch.of(shared))
         state_ref, received_ref, same_ref = reference(grid, [o if o.key[0] else
                                                              SharedObject(o.key, o.points_world[1:], o.velocity_xy,
                                                                           o.age_s, o.fresh) for o in shared])
         np.testing.assert_array_equal(got.state, state_ref)
         np.testing.assert_array_equal(got.received, received_ref)
         assert got.same_as_own == same_ref
+
+
+def test_the_store_places_each_objects_newest_reception_like_one_at_a_time():
+    """add_many takes every object to the world in one pass: the points must equal
+    sensor_to_world's, object by object, and a reception older than the one kept (in
+    the same batch or before) is ignored."""
+    from vehicle_agent.fusion import ReceivedStore
+
+    rng = np.random.default_rng(2)
+
+    def payload(sender, oid, t, n):
+        pose = Pose(*rng.normal(0, 30, 2), float(rng.uniform(-np.pi, np.pi)))
+        pts = rng.normal(0, 3, (n, 3)).astype(np.float32)
+        return ObjectPayload(sender, oid, int(t * 10), t, pose, float(rng.uniform(1.5, 2.5)), pts.mean(axis=0),
+                             rng.normal(0, 5, 2).astype(np.float32), pts)
+
+    store = ReceivedStore()
+    first = [payload(1, 0, 0.5, 40), payload(2, 3, 0.5, 7)]
+    store.add_many(first)
+    batch = [payload(1, 0, 0.6, 30), payload(1, 0, 0.4, 9), payload(3, 1, 0.6, 1), payload(3, 1, 0.65, 12),
+             payload(2, 3, 0.3, 5)]
+    store.add_many(batch)
+    want = {(1, 0): batch[0], (2, 3): first[1], (3, 1): batch[3]}
+    got = store.current(0.7, {(1, 0)})
+    assert got.keys == sorted(want) and got.fresh.tolist() == [True, False, False]
+    for o in got.objects():
+        p = want[o.key]
+        placed = sensor_to_world(p.points_sensor, p.sender_pose, p.mount_height_m)
+        placed[:, :2] += p.velocity_xy.astype(np.float64) * (0.7 - p.t_sim_s)
+        np.testing.assert_array_equal(o.points_world, placed)
+        assert o.age_s == 0.7 - p.t_sim_s
+    assert store.current(1.66).keys == []  # all older than 1 s now, and forgotten
+
+
+def test_a_carried_object_where_we_now_see_bare_ground_is_dropped():
+    """Own grid: ground everywhere except one unseen column. A stale object on ground is
+    gone; the same points fresh are kept; a stale object over unseen cells or off the
+    grid is kept (we cannot see that it left)."""
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_contradicted
+
+    spec = GridSpec(half_extent_m=20.0)
+    n = spec.cells
+    state = np.full((n, n), GROUND, dtype=np.uint8)
+    grid = Grid(spec, -n // 2, -n // 2, state, np.ones((n, n), dtype=bool))
+    unseen = grid.cell_of(np.array([5.25, 0.0]))[1]
+    state[:, unseen] = EMPTY
+    on_ground = [[1.0, 1.0, 1.0], [1.5, 1.0, 1.0]]
+
+    def obj(k, pts, fresh):
+        return SharedObject((k, 0), np.array(pts), np.zeros(2), 0.2, fresh)
+
+    shared = SharedBatch.of([obj(1, on_ground, False), obj(2, on_ground, True), obj(3, [[5.25, 0.0, 1.0]], False),
+                             obj(4, [[50.0, 0.0, 1.0]], False)])
+    assert not_contradicted(shared, grid).keys == [(2, 0), (3, 0), (4, 0)]

@@ -19,7 +19,7 @@ import numpy as np
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
 from vehicle_agent.control import VehicleController
 from vehicle_agent.dataplane import DataPlane, View
-from vehicle_agent.fusion import FusedGrid, stack_points
+from vehicle_agent.fusion import FusedGrid
 from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
 
 
@@ -92,14 +92,15 @@ class Agent:
                                       view.t_sim_s, tr.heading_rad))
             if tr.speed_mps > STATIC_MPS:
                 _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
-        shared = [obj for obj in self.dataplane.shared if len(obj.points_world)]
-        if not shared:
+        shared = self.dataplane.shared_batch
+        shared = shared.keep(shared.counts > 0)
+        if not len(shared):
             return obstacles, moving
-        pts, starts, counts = stack_points(shared)
-        xy = pts[:, :2]
-        lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
+        counts = shared.counts
+        xy = shared.points[:, :2]
+        lo, hi = np.minimum.reduceat(xy, shared.starts, axis=0), np.maximum.reduceat(xy, shared.starts, axis=0)
         center, extent = (lo + hi) / 2, hi - lo
-        vel = np.array([obj.velocity_xy for obj in shared], dtype=np.float64)
+        vel = shared.velocity
         length = np.maximum(extent.max(axis=1), 1.0).tolist()
         width = np.maximum(extent.min(axis=1), 1.0).tolist()
         heading = np.arctan2(vel[:, 1], vel[:, 0]).tolist()

@@ -261,6 +261,13 @@ def _warm_agent_kernels(sim) -> None:
             other.dataplane.neighbors.update([msg])
         agent.drive(view, agent.fuse(view, []), scan)
         heard.append(vid)
+    # the agents' own warm-up (decoded, read-only arrays; a shared object; a predicted
+    # conflict): what it loads, each agent would otherwise compile for itself
+    from channel_proxy.profiles import get_profile
+    from vehicle_agent.agreement import AgreementConfig
+    from vehicle_agent.warmup import warm_up as warm_agent
+
+    warm_agent(agents[vids[0]], AgreementConfig.from_profile(get_profile("lte-direct"), scheduler="autocast"))
     warm_scheduler()
 
 

@@ -454,3 +454,34 @@ def test_a_carried_object_where_we_now_see_bare_ground_is_dropped():
     shared = SharedBatch.of([obj(1, on_ground, False), obj(2, on_ground, True), obj(3, [[5.25, 0.0, 1.0]], False),
                              obj(4, [[50.0, 0.0, 1.0]], False)])
     assert not_contradicted(shared, grid).keys == [(2, 0), (3, 0), (4, 0)]
+
+
+def test_the_drivable_raster_equals_testing_every_cell_against_every_polygon():
+    """The three scenarios' maps, plus both windings of a triangle: the bounding-box
+    kernel marks the same cells as the meshgrid formulation."""
+    from vehicle_agent.perception import lattice_centers
+    from world_server.scenarios import ScenarioParams
+    from world_server.sim import Simulation
+
+    def reference(polygons, cell_m, margin_m=100.0):
+        _, _, xs, ys = lattice_centers(np.vstack(polygons), cell_m, margin_m)
+        px, py = np.meshgrid(xs, ys)
+        mask = np.zeros(px.shape, dtype=bool)
+        for poly in polygons:
+            poly = np.asarray(poly, dtype=float)
+            ccw, cw = np.ones(px.shape, dtype=bool), np.ones(px.shape, dtype=bool)
+            for a, b in zip(poly, np.roll(poly, -1, axis=0)):
+                cross = (b[0] - a[0]) * (py - a[1]) - (b[1] - a[1]) * (px - a[0])
+                ccw &= cross >= 0
+                cw &= cross <= 0
+            mask |= ccw | cw
+        return mask
+
+    triangle = np.array([[0.25, 0.25], [10.25, 0.25], [0.25, 7.75]])  # vertices and edges on cell centres
+    maps = [[triangle], [triangle[::-1]]]
+    maps += [Simulation(ScenarioParams(scenario=s, vehicles=5, seed=0, delta_s=0.0)).scenario.roadmap.to_msg().drivable
+             for s in ("left_turn", "overtaking", "red_light")]
+    for polygons in maps:
+        got = DrivableRaster(polygons, 0.5).values
+        want = reference(polygons, 0.5)
+        assert got.any() and np.array_equal(got, want)

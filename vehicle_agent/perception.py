@@ -157,22 +157,37 @@ class DrivableRaster(LatticeRaster):
 
     def __init__(self, polygons: list[np.ndarray], cell_m: float, margin_m: float = 100.0) -> None:
         i0, j0, xs, ys = lattice_centers(np.vstack(polygons), cell_m, margin_m)
-        px, py = np.meshgrid(xs, ys)
-        mask = np.zeros(px.shape, dtype=bool)
+        mask = np.zeros((len(ys), len(xs)), dtype=bool)
         for poly in polygons:
-            mask |= _inside_convex(px, py, np.asarray(poly, dtype=float))
+            poly = np.ascontiguousarray(poly, dtype=np.float64)
+            # only the cells whose centres lie in the polygon's bounding box can be inside it
+            c0, c1 = np.searchsorted(xs, poly[:, 0].min()), np.searchsorted(xs, poly[:, 0].max(), side="right")
+            r0, r1 = np.searchsorted(ys, poly[:, 1].min()), np.searchsorted(ys, poly[:, 1].max(), side="right")
+            _fill_convex(mask, xs, ys, int(r0), int(r1), int(c0), int(c1), poly)
         super().__init__(mask, i0, j0, False)
 
 
-def _inside_convex(px: np.ndarray, py: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Points inside a convex polygon given in either winding."""
-    inside_ccw = np.ones(px.shape, dtype=bool)
-    inside_cw = np.ones(px.shape, dtype=bool)
-    for a, b in zip(poly, np.roll(poly, -1, axis=0)):
-        cross = (b[0] - a[0]) * (py - a[1]) - (b[1] - a[1]) * (px - a[0])
-        inside_ccw &= cross >= 0
-        inside_cw &= cross <= 0
-    return inside_ccw | inside_cw
+@njit(cache=True)
+def _fill_convex(mask, xs, ys, r0, r1, c0, c1, poly):
+    """Set the cells of rows r0:r1, columns c0:c1 whose centre (xs[c], ys[r]) is inside
+    the convex polygon (either winding; on an edge counts as inside). 40 agents do this
+    for the whole map at startup: in numpy over a meshgrid it took ~0.2 s each."""
+    m = poly.shape[0]
+    for r in range(r0, r1):
+        py = ys[r]
+        for c in range(c0, c1):
+            px = xs[c]
+            ccw, cw = True, True
+            for k in range(m):
+                ax, ay = poly[k, 0], poly[k, 1]
+                bx, by = poly[(k + 1) % m, 0], poly[(k + 1) % m, 1]
+                cross = (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+                ccw = ccw and cross >= 0
+                cw = cw and cross <= 0
+                if not (ccw or cw):
+                    break
+            if ccw or cw:
+                mask[r, c] = True
 
 
 def build_grid(world: np.ndarray, center_xy: tuple[float, float], spec: GridSpec,

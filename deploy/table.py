@@ -100,6 +100,8 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
              "--agent-timeout-s", str(cfg.agent_timeout_s)]
     if cfg.realtime:
         flags.append("--realtime")
+    if cfg.scheme != "lane":  # every agent pipeline but the blind lane follower reports the ego's fused view
+        flags.append("--ego-reports")
     return tuple(flags)
 
 

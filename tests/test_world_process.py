@@ -175,3 +175,45 @@ def test_realtime_mode_keeps_the_wall_clock(procs, hub, tap_on):
     assert result["mode"] == "realtime" and result["ticks"] == 20
     assert 1.9 < result["wall_s"] < 3.0  # 20 ticks of 100 ms on the wall clock
     assert result["dead_agents"] == {}
+
+
+def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, hub, tap_on):
+    """A stand-in ego answers each scan with its command at once and its fused-view
+    report 1 s later. With --ego-reports the world does not step tick 0 before that
+    report is in (without the flag it would, and the judge would count tick 0 without
+    the ego's view in some runs and with it in others)."""
+    import numpy as np
+
+    from protocol.codec import encode
+    from protocol.messages import AgentReport
+
+    w = world(procs, hub, "--vehicles", "2", "--duration", "0.5", "--ego-reports")
+    agent(procs, hub, 1)
+    tap = tap_on()
+    session = tap.session
+    sent: dict[int, float] = {}
+
+    def on_scan(sample):
+        scan = decode(sample.payload.to_bytes(), Scan)
+        session.put(keys.cmd(RUN, 0), encode(Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0)))
+
+        def report():
+            time.sleep(1.0)
+            sent[scan.tick] = time.monotonic()
+            session.put(keys.report(RUN, 0), encode(AgentReport(scan.tick, scan.t_sim_s, 0,
+                                                                np.zeros((0, 2), np.float32), 0, False)))
+        threading.Thread(target=report, daemon=True).start()
+
+    sub = session.declare_subscriber(keys.scan(RUN, 0), on_scan)
+    token = session.liveliness().declare_token(keys.alive(RUN, 0))
+    tick_seen: dict[int, float] = {}
+    tick_sub = session.declare_subscriber(keys.world_tick(RUN),
+                                          lambda s: tick_seen.setdefault(decode(s.payload.to_bytes(), Tick).tick,
+                                                                         time.monotonic()))
+    try:
+        result = outcome_of(w)
+    finally:
+        for entity in (sub, token, tick_sub):
+            entity.undeclare()
+    assert result["ticks"] == 5 and result["dead_agents"] == {}
+    assert 0 in sent and tick_seen[1] >= sent[0]  # tick 1 opened only after tick 0's report

@@ -44,6 +44,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--agent-timeout-s", type=float, default=10.0,
                     help="wall time an agent may take for one tick before it is declared dead")
     ap.add_argument("--startup-timeout-s", type=float, default=120.0)
+    ap.add_argument("--ego-reports", action="store_true",
+                    help="the ego agent reports its fused view every tick: lock-step waits for it from the first tick")
     ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
@@ -90,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     agent_hub = list(z.listen[:1] or z.connect[:1])
     with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
-                             agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s)
+                             agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
+                             ego_reports=args.ego_reports)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":

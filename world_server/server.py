@@ -40,7 +40,7 @@ class ServerStats:
 
 class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
-                 agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0) -> None:
+                 agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False) -> None:
         self.sim = sim
         self.session = session
         self.run_id = run_id
@@ -53,7 +53,11 @@ class WorldServer:
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
         self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
-        self._ego_reports = False  # the ego agent reports its fused view: wait for it in lock-step
+        # the ego agent reports its fused view: lock-step waits for it. Told so up front
+        # (--ego-reports), from the first tick; otherwise once a first report has come,
+        # and whether that beat the first command was a race that changed the judged
+        # visibility share of identical runs
+        self._ego_reports = ego_reports
         self._expected = set(sim.connected_vids)
         self._live = set(self._expected)
         self._stopping = threading.Event()

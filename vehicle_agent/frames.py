@@ -17,10 +17,16 @@ from protocol.messages import LidarConfig, Pose, Scan
 
 def sensor_to_world(points: np.ndarray, pose: Pose, mount_height_m: float) -> np.ndarray:
     """T_s: sensor frame -> world x, y and height above ground."""
-    c, s = np.cos(pose.yaw_rad), np.sin(pose.yaw_rad)
+    return placed_in_world(points, pose.x_m, pose.y_m, np.cos(pose.yaw_rad), np.sin(pose.yaw_rad), mount_height_m)
+
+
+def placed_in_world(points, x, y, cos_yaw, sin_yaw, mount_height_m) -> np.ndarray:
+    """``sensor_to_world`` with the pose (x, y, cos and sin of the yaw) and the mount
+    height given per point (arrays) or for all (scalars): many senders' points in one
+    pass. The height is added in the points' dtype, as a Python float would be."""
     out = np.empty((len(points), 3), dtype=np.float64)
-    out[:, 0] = pose.x_m + c * points[:, 0] - s * points[:, 1]
-    out[:, 1] = pose.y_m + s * points[:, 0] + c * points[:, 1]
+    out[:, 0] = x + cos_yaw * points[:, 0] - sin_yaw * points[:, 1]
+    out[:, 1] = y + sin_yaw * points[:, 0] + cos_yaw * points[:, 1]
     out[:, 2] = points[:, 2] + mount_height_m
     return out
 

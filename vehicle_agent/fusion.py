@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from vehicle_agent.frames import placed_in_world
 from vehicle_agent.payload import ObjectPayload
 from vehicle_agent.perception import ABOVE, GROUND, Grid
 
@@ -103,7 +104,7 @@ class ReceivedStore:
         self.add_many([obj])
 
     def add_many(self, objs: list[ObjectPayload]) -> None:
-        """Keep each object's newest reception, taken to the world (``sensor_to_world``
+        """Keep each object's newest reception, taken to the world (``sensor_to_world``,
         for all of them in one pass)."""
         newest: dict[ObjectKey, ObjectPayload] = {}
         for obj in objs:
@@ -120,12 +121,8 @@ class ReceivedStore:
         c, s = np.repeat(np.cos(yaw), counts), np.repeat(np.sin(yaw), counts)
         x = np.repeat(np.array([o.sender_pose.x_m for o in kept]), counts)
         y = np.repeat(np.array([o.sender_pose.y_m for o in kept]), counts)
-        # as sensor_to_world: the height is added in the points' float32, like a scalar would be
         mount = np.repeat(np.array([o.mount_height_m for o in kept], dtype=pts.dtype), counts)
-        world = np.empty((len(pts), 3), dtype=np.float64)
-        world[:, 0] = x + c * pts[:, 0] - s * pts[:, 1]
-        world[:, 1] = y + s * pts[:, 0] + c * pts[:, 1]
-        world[:, 2] = pts[:, 2] + mount
+        world = placed_in_world(pts, x, y, c, s, mount)
         start = 0
         for key, obj, n in zip(newest, kept, counts.tolist()):
             self._last[key] = (obj, world[start:start + n])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("lidar", "perception", "scheduler", "channel", "pipeline")
+BENCHES = ("lidar", "perception", "scheduler", "channel", "pipeline", "fuzz")
 # command -> module whose ``main(argv) -> int`` runs it
 SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "deploy": "deploy.hosts"}
 

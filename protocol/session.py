@@ -144,6 +144,9 @@ def put(session: zenoh.Session, key: str, msg: Any) -> None:
     session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
 
 
+MALFORMED_LINE = "malformed_dropped"  # the tag of a process's exit line (DropCounter.exit_line)
+
+
 @dataclass
 class DropCounter:
     """Counts payloads that failed to decode, per key, and logs the first of each."""
@@ -155,6 +158,17 @@ class DropCounter:
     def total(self) -> int:
         with self._lock:
             return sum(self.counts.values())
+
+    def by_key(self) -> dict[str, int]:
+        with self._lock:
+            return dict(sorted(self.counts.items()))
+
+    def exit_line(self, process: str) -> str:
+        """What a process prints (stderr, so its log) as it exits:
+        ``malformed_dropped {"process": ..., "total": n, "by_key": {key: n}}``; the
+        launcher gathers these lines into the outcome record (``deploy.procs.exit_records``)."""
+        by_key = self.by_key()
+        return f"{MALFORMED_LINE} " + json.dumps({"process": process, "total": sum(by_key.values()), "by_key": by_key})
 
     def add(self, key: str, err: Exception) -> None:
         with self._lock:

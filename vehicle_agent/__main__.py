@@ -150,6 +150,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         step.close()
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
+    print(drops.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
     print("agent_timings " + json.dumps(step.timing_summary()), file=sys.stderr, flush=True)
     if profiler is not None:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)

@@ -200,9 +200,17 @@ def typed_handler(expected: type, on_msg: Callable[[str, Any], None],
     return handler
 
 
-def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float) -> Any:
-    """Ask a queryable for one message; raise ``TimeoutError`` if nobody answers."""
-    for reply in session.get(key, timeout=timeout_s):
+def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float,
+              drops: DropCounter | None = None) -> Any:
+    """Ask a queryable for one message: the first reply that decodes as ``expected``;
+    the others are dropped (and counted in ``drops``). Replies are not consolidated: a
+    stranger's reply on the same key must not replace the real one. ``TimeoutError`` if
+    no reply decodes."""
+    for reply in session.get(key, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE):
         if reply.ok is not None:
-            return decode(reply.ok.payload.to_bytes(), expected)
-    raise TimeoutError(f"no reply on {key} within {timeout_s} s")
+            try:
+                return decode(reply.ok.payload.to_bytes(), expected)
+            except MalformedMessage as err:
+                if drops is not None:
+                    drops.add(key, err)
+    raise TimeoutError(f"no valid reply on {key} within {timeout_s} s")

@@ -25,7 +25,9 @@ from deploy.procs import ProcSpec
 from deploy.recorder import EGO_VID, McapLog, subscriptions
 from deploy.run import Launcher, RunResult, open_hub, options_from, parse_args, warm_numba_caches
 from protocol import keys
+from protocol.codec import encode
 from protocol.messages import Tick
+from protocol.session import DropCounter, ZenohArgs, query_one, session_scope
 
 FLAGS = ("--scenario", "left_turn", "--vehicles", "3", "--scheme", "autocast", "--duration", "2.5", "--seed", "2")
 UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped")
@@ -125,3 +127,38 @@ def test_the_recorder_keeps_a_message_whose_sim_time_mcap_cannot_hold():
         log.write(keys.world_tick("r"), msgpack.packb([Tick.TYPE_ID, Tick.VERSION, 0, t_sim_s, [], []]), 5)
     log.finish()
     assert log.stats.messages == 5 and log.stats.malformed == 0
+
+
+class _SignallingDrops(DropCounter):
+    def __init__(self) -> None:
+        super().__init__()
+        self.dropped = threading.Event()
+
+    def add(self, key: str, err: Exception) -> None:
+        super().add(key, err)
+        self.dropped.set()
+
+
+def test_a_strangers_garbage_reply_to_a_query_is_dropped_and_the_real_one_taken(hub):
+    """Agents ask the world for the map and their mission by query. A stranger's
+    queryable on the same key answers garbage first (the world's answers only once the
+    garbage was counted): the agent takes the world's, and counts the other."""
+    key, real = keys.world_map("q"), Tick(3, 0.3, [0, 1], [])
+    drops = _SignallingDrops()
+
+    def world(query: zenoh.Query) -> None:
+        assert drops.dropped.wait(30.0), "the stranger's reply never reached the asker"
+        query.reply(key, encode(real))
+
+    with session_scope(ZenohArgs(listen=(hub,))) as router, session_scope(ZenohArgs(connect=(hub,))) as stranger, \
+            session_scope(ZenohArgs(connect=(hub,))) as agent:
+        entities = [router.declare_queryable(key, world),
+                    stranger.declare_queryable(key, lambda q: q.reply(key, b"\xc1garbage")),
+                    stranger.liveliness().declare_token("q/stranger")]  # after its queryable: the hub knows both
+        seen = threading.Event()
+        watch = agent.liveliness().declare_subscriber("q/stranger", lambda s: seen.set(), history=True)
+        assert seen.wait(30.0)
+        assert query_one(agent, key, Tick, timeout_s=30.0, drops=drops) == real
+        assert drops.by_key() == {key: 1}
+        for entity in (*entities, watch):
+            entity.undeclare()

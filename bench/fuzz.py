@@ -447,12 +447,12 @@ def run_decoder(name: str, n: int, seed: int) -> Tally:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="autocast bench fuzz", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="200 inputs per decoder (a few seconds)")
-    ap.add_argument("--inputs", type=int, default=None, help="inputs per decoder (default 10000, quick 200)")
+    ap.add_argument("--quick", action="store_true", help="100 inputs per decoder (a few seconds)")
+    ap.add_argument("--inputs", type=int, default=None, help="inputs per decoder (default 10000, quick 100)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--decoders", nargs="+", default=list(DECODERS), choices=DECODERS, metavar="NAME")
     args = ap.parse_args(argv)
-    n = args.inputs if args.inputs is not None else (200 if args.quick else 10_000)
+    n = args.inputs if args.inputs is not None else (100 if args.quick else 10_000)
     print(f"{'decoder':<14} {'inputs':>7} {'valid':>6} {'malformed':>9} {'other':>5} {'peak KiB':>9} "
           f"{'peak/byte':>9} {'>bound':>6} {'max input':>9} {'us/input':>8}")
     total = Tally()

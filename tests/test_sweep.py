@@ -5,10 +5,10 @@ resume, a failed run, Ctrl-C."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -17,6 +17,7 @@ import pytest
 
 from deploy import report, sweep
 from deploy.sweep import RunKey
+from tests.conftest import wait_until
 
 # ---------------------------------------------------------------------------- the matrix
 
@@ -241,9 +242,10 @@ def test_report_of_an_empty_sweep_says_no_data(tmp_path):
 # ---------------------------------------------------------------------------- real sweeps
 
 
-def autocast(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def autocast(*args: str, timeout: float = 240, faults: str = "") -> subprocess.CompletedProcess:
+    """``autocast ARGS``; ``faults`` goes to every process of the runs (protocol/faults.py)."""
     return subprocess.run([sys.executable, "-m", "deploy.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, env=dict(os.environ, AUTOCAST_FAULTS=faults))
 
 
 def leftovers(run_ids) -> list[str]:
@@ -287,10 +289,12 @@ def test_smoke_sweep_resume_and_report(tmp_path):
 
 
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):
+    """The world hangs at tick 3, so the run cannot reach an outcome however fast the
+    machine is; the wall-clock limit only notices. The run is failed, never judged."""
     f = tmp_path / "fail.toml"
     f.write_text('preset = "smoke"\nschemes = ["single"]\nvehicles = [2]\ntimeout_s = 1\n')
     out = tmp_path / "fail"
-    res = autocast("sweep", "--file", str(f), "--out", str(out))
+    res = autocast("sweep", "--file", str(f), "--out", str(out), faults="world:hang@3")
     assert res.returncode == 1, res.stderr
     [r] = lines(out / "results.jsonl")
     assert r["status"] == "failed" and r["outcome"] is None and r["exit_code"] == 3
@@ -302,19 +306,20 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path):
 
 
 def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
+    """Agent 1 hangs at tick 5 (and would be declared dead only after 600 s), so the run
+    is still going whenever the SIGINT lands."""
     out = tmp_path / "stop"
     proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "sweep", "--preset", "smoke", "--vehicles", "2",
-                             "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                             "--agent-timeout-s", "600", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, AUTOCAST_FAULTS="agent1:hang@5"))
     run_id = "left_turn-v2-c30-d0-single-s0-t20"
     pids = out / "runs" / run_id / "pids.json"
     try:
-        deadline = time.monotonic() + 60
-        while not pids.exists():
-            assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else ""
-            time.sleep(0.1)
+        wait_until(lambda: pids.exists() or proc.poll() is not None, "the run started", timeout_s=240)
+        assert proc.poll() is None, proc.stderr.read()
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()

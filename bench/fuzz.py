@@ -43,11 +43,11 @@ import msgpack
 import numpy as np
 
 from protocol import messages  # noqa: F401  (registers every message type)
-from protocol.codec import _REGISTRY, _WIRE_DTYPES, MalformedMessage, decode, encode
+from protocol.codec import WIRE_DTYPES, MalformedMessage, decode, encode, message_types
 from protocol.messages import Pose
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object
 
-MESSAGE_TYPES: tuple[type, ...] = tuple(_REGISTRY[k] for k in sorted(_REGISTRY))
+MESSAGE_TYPES: tuple[type, ...] = message_types()
 ANY = "any"  # decode() without an expected type
 OBJECT = "object_payload"  # vehicle_agent.payload.decode_object
 ENVELOPE = "envelope"  # the recorder's peek_envelope: an envelope or None, never raises
@@ -76,7 +76,7 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
     """A random valid wire value (what ``encode`` would produce) of a field type."""
     origin = typing.get_origin(hint)
     if hint is np.ndarray:
-        dtype = np.dtype(rnd.choice(sorted(_WIRE_DTYPES)))
+        dtype = np.dtype(rnd.choice(sorted(WIRE_DTYPES)))
         shape = [rnd.randint(0, 4) for _ in range(rnd.randint(1, 2))]
         raw = bytes(rnd.getrandbits(8) for _ in range(math.prod(shape) * dtype.itemsize))
         if dtype == np.bool_:
@@ -84,7 +84,8 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
         return [dtype.str, shape, raw]
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return None if len(args) < len(typing.get_args(hint)) and rnd.random() < 0.3 else wire_value(args[0], rnd, depth)
+        optional = len(args) < len(typing.get_args(hint))
+        return None if optional and rnd.random() < 0.3 else wire_value(args[0], rnd, depth)
     if origin in (list, tuple) and (origin is list or typing.get_args(hint)[1:] == (Ellipsis,)):
         return [wire_value(typing.get_args(hint)[0], rnd, depth + 1) for _ in range(rnd.randint(0, 3))]
     if origin is tuple:
@@ -224,7 +225,8 @@ def _bad_array(triple: list, rnd: random.Random) -> list:
     dtype, shape, raw = triple
     kind = rnd.randrange(7)
     if kind == 0:  # enormous declared shape, few bytes
-        return [dtype, rnd.choice([[10**6, 10**6], [10**12], [2**63, 2], [2**64 - 1], [0, 2**64 - 1], [2**32] * 8]), raw]
+        huge = [[10**6, 10**6], [10**12], [2**63, 2], [2**64 - 1], [0, 2**64 - 1], [2**32] * 8]
+        return [dtype, rnd.choice(huge), raw]
     if kind == 1:  # a shape that does not match the bytes
         return [dtype, [d + rnd.choice([-1, 1, 7]) for d in shape] or [1], raw]
     if kind == 2:  # too many or bad dimensions
@@ -287,7 +289,7 @@ def _mutate_tree(tree: list, kind: int, payload: bytes, rnd: random.Random) -> b
         i = rnd.randrange(2)
         was = tree[i] if type(tree[i]) is int and abs(tree[i]) < 2**62 else 1
         tree[i] = rnd.choice([was + 1, was - 1, -1, 0, 2**64 - 1, True, float(was), str(was), None,
-                              rnd.choice(sorted(_REGISTRY))])
+                              rnd.choice(MESSAGE_TYPES).TYPE_ID])
         return msgpack.packb(tree, use_bin_type=True)
     if kind == 8:  # an array whose declared shape, dtype or bytes do not match
         arrays = _arrays(tree)
@@ -336,7 +338,7 @@ def conforms(value: Any, hint: Any) -> bool:
     """Is ``value`` of field type ``hint`` (as ``decode`` promises)?"""
     origin = typing.get_origin(hint)
     if hint is np.ndarray:
-        return isinstance(value, np.ndarray) and value.dtype.str in _WIRE_DTYPES
+        return isinstance(value, np.ndarray) and value.dtype.str in WIRE_DTYPES
     if origin in (typing.Union, types.UnionType):
         return any(conforms(value, a) for a in typing.get_args(hint))
     if hint is type(None):
@@ -460,7 +462,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.decoders:
         t = run_decoder(name, n, args.seed)
         print(f"{name:<14} {t.inputs:>7} {t.valid:>6} {t.malformed:>9} {t.other:>5} {t.peak_bytes / 1024:>9.1f} "
-              f"{max(t.peak_per_byte, 0.0):>9.1f} {t.over_bound:>6} {t.max_payload_bytes:>9} {t.seconds / t.inputs * 1e6:>8.1f}")
+              f"{max(t.peak_per_byte, 0.0):>9.1f} {t.over_bound:>6} {t.max_payload_bytes:>9} "
+              f"{t.seconds / t.inputs * 1e6:>8.1f}")
         if t.first_other:
             print(f"  first other exception: {t.first_other}")
         total.inputs += t.inputs

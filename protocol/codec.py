@@ -33,8 +33,8 @@ class MalformedMessage(ValueError):
 
 
 # dtypes an array field may carry on the wire; anything else is refused on decode.
-_WIRE_DTYPES = frozenset(["<f4", "<f8", "<i2", "<i4", "<i8", "|u1", "|i1", "<u2", "<u4", "|b1"])
-_DTYPE_OF = {name: np.dtype(name) for name in _WIRE_DTYPES}
+WIRE_DTYPES = frozenset(["<f4", "<f8", "<i2", "<i4", "<i8", "|u1", "|i1", "<u2", "<u4", "|b1"])
+_DTYPE_OF = {name: np.dtype(name) for name in WIRE_DTYPES}
 MAX_ARRAY_DIMS = 8  # no field has more than 2; numpy's own limit is 64
 MAX_ANY_DEPTH = 16  # containers within a free-form value (an outcome, channel statistics)
 _PLAIN = (type(None), bool, int, float, str, bytes)
@@ -63,6 +63,11 @@ def record(cls):
     return dataclasses.dataclass(frozen=True, slots=True)(cls)
 
 
+def message_types() -> tuple[type, ...]:
+    """Every registered message type, by type id."""
+    return tuple(_REGISTRY[k] for k in sorted(_REGISTRY))
+
+
 def message_class(type_id: int) -> type | None:
     """The registered message dataclass of a wire type id (None if unknown)."""
     return _REGISTRY.get(type_id)
@@ -80,7 +85,7 @@ def _hints(cls) -> list[tuple[str, Any]]:
 def _to_wire(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         arr = np.ascontiguousarray(value)
-        if arr.dtype.str not in _WIRE_DTYPES:
+        if arr.dtype.str not in WIRE_DTYPES:
             raise TypeError(f"dtype {arr.dtype} cannot go on the wire")
         raw = memoryview(arr).cast("B") if arr.size else b""  # a view with a 0 in its shape cannot be cast
         return [arr.dtype.str, list(arr.shape), raw]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from vehicle_agent.scheduler.fill import work_conserving
 from vehicle_agent.scheduler.instance import Instance, Schedule
 from vehicle_agent.scheduler.registry import register
 from vehicle_agent.scheduler.state import SchedulerState
@@ -143,10 +144,17 @@ def greedy_schedule(instance: Instance, starvation: np.ndarray | None = None) ->
     return Schedule(tuple(tuple(np.flatnonzero(row).tolist()) for row in x))
 
 
-@register("greedy", "autocast")
+@register("greedy")
 def greedy(instance: Instance, state: SchedulerState) -> Schedule:
-    """AutoCast's scheduler: greedy max-weight with starvation compensation."""
+    """Algorithm 1 with starvation compensation: only objects of positive weight."""
     return greedy_schedule(instance, state.starvation(instance))
+
+
+@register("autocast")
+def autocast(instance: Instance, state: SchedulerState) -> Schedule:
+    """AutoCast's scheduler: Algorithm 1 with starvation compensation, then the frames'
+    spare airtime filled with the remaining objects (work-conserving, ``fill.py``)."""
+    return work_conserving(instance, greedy(instance, state), state.cursor)
 
 
 @register("greedy-plain")

@@ -1,4 +1,5 @@
-"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation.
+"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation, and
+AutoCast's scheduler: the same, its frames' spare airtime filled (``fill.py``).
 
 Starvation: the paper replaces H/s by H / (s / var_s) * m / var_m. var_s is common to
 every object of an interval, so it scales all keys alike and is dropped; m / var_m

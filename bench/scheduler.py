@@ -48,7 +48,8 @@ HEADER_BYTES = 64
 
 SCALE_VEHICLES = (5, 10, 20, 30, 40)
 ALGORITHMS = ("greedy", "fptas", "knapsack", "agnostic", "optimal")
-STARVED = "greedy+m"  # greedy (autocast) with the starvation counters of a running agent
+STARVED = "greedy+m"  # greedy with the starvation counters of a running agent
+WORK_CONSERVING = "autocast"  # greedy+m with the frames' spare room filled (fill.py)
 
 
 # ------------------------------------------------------------------------- instances
@@ -141,7 +142,7 @@ def intersection_instance(
     r = relevance(scene)  # (A, C)
     C = n_vehicles
     vids = rng.permutation(np.arange(100, 100 + 3 * C))[:C]
-    owner, oid, size, rows = [], [], [], []
+    owner, oid, size, rows, unseen = [], [], [], [], []
     for i in range(C):
         visible = np.flatnonzero(detects[i])
         dist = np.hypot(*(scene.xy[visible] - scene.xy[i]).T)
@@ -156,12 +157,16 @@ def intersection_instance(
             if a < C:
                 y[a] = 0.0  # a connected vehicle needs no point cloud of itself
             rows.append(y)
+            hidden = 1.0 - visible_to_j
+            hidden[i] = 0.0
+            unseen.append(float(hidden.sum()))  # sum_j (1 - v) over the other receivers
     reward = np.array(rows).reshape(len(rows), C)
     p = link_probabilities(scene.xy[:C])
     frame_bytes = int(bandwidth_bps * frame_duration_s / 8.0)  # S_f = B * T_n
     return instance_from_arrays(
         vids, owner, oid, size, reward, p,
         frame_bytes=frame_bytes, n_frames=n_frames, bandwidth_bps=bandwidth_bps, frame_duration_s=frame_duration_s,
+        unseen=np.array(unseen),
     )
 
 
@@ -172,6 +177,8 @@ def intersection_instance(
 class Run:
     reward: float | None  # expected reward of the schedule; None if the solver refused
     ms: float | None  # median wall time per call
+    sent_bytes: int | None = None  # bytes on air over the interval (repeats counted)
+    sent_objects: int | None = None  # distinct objects sent
 
 
 def measure(fn: Callable[[], object], repeats: int) -> tuple[object, float]:
@@ -195,7 +202,8 @@ def run_all(inst: Instance, state: SchedulerState, repeats: int, algorithms: tup
             out[name] = Run(None, None)
             continue
         check_schedule(inst, schedule)
-        out[name] = Run(expected_reward(inst, schedule), ms)
+        sent_bytes = sum(int(inst.size_bytes[list(f)].sum()) for f in schedule.frames if f)
+        out[name] = Run(expected_reward(inst, schedule), ms, sent_bytes, len(schedule.sent()))
     return out
 
 
@@ -251,6 +259,7 @@ def scale_series(name: str, seed: int, seeds: int, repeats: int) -> list[Case]:
             runs = run_all(inst, SchedulerState(), repeats)
             starved = SchedulerState().advance(inst, get("greedy")(inst, SchedulerState()))
             runs[STARVED] = run_all(inst, starved, repeats, ("greedy",))["greedy"]
+            runs[WORK_CONSERVING] = run_all(inst, starved, repeats, ("autocast",))["autocast"]
             out.append(Case(name, n_vehicles, inst, runs))
     return out
 
@@ -314,7 +323,7 @@ def reward_table(cases: list[Case]) -> list[str]:
 
 
 def time_table(cases: list[Case]) -> list[str]:
-    cols = (*ALGORITHMS, STARVED)
+    cols = (*ALGORITHMS, STARVED, WORK_CONSERVING)
     lines = ["computation time per schedule, ms (median over repeats and instances)", f"{'series':<11}{'veh':>4} |" + "".join(f"{a:>10}" for a in cols)]
     keys = sorted({(c.series, c.n_vehicles) for c in cases if c.series != "small"}, key=lambda t: (t[0] != "1 x 100 ms", t[1]))
     for series, nv in keys:
@@ -324,6 +333,23 @@ def time_table(cases: list[Case]) -> list[str]:
             ms = [c.runs[a].ms for c in group if c.runs[a].ms is not None]
             cells.append(_fmt(statistics.median(ms), ".3f") if len(ms) == len(group) else "refused" if not ms else f"{statistics.median(ms):.3f}*")
         lines.append(f"{series:<11}{nv:>4} |" + "".join(f"{x:>10}" for x in cells))
+    return lines
+
+
+def airtime_table(cases: list[Case]) -> list[str]:
+    """What each schedule carries, 10 x 10 ms series: bytes on air and distinct objects."""
+    cols = (STARVED, WORK_CONSERVING, "agnostic")
+    lines = ["airtime carried per interval, 10 x 10 ms (mean over instances): kB on air / distinct objects sent",
+             f"{'veh':>4}{'objs':>6}{'kB':>6} |" + "".join(f"{a:>16}" for a in cols)]
+    for nv in SCALE_VEHICLES:
+        group = [c for c in cases if c.series == "10 x 10 ms" and c.n_vehicles == nv]
+        if not group:
+            continue
+        total_kb = _mean([float(c.instance.size_bytes.sum()) / 1e3 for c in group])
+        cells = [f"{_mean([c.runs[a].sent_bytes / 1e3 for c in group]):.1f} / {_mean([c.runs[a].sent_objects for c in group]):.0f}"
+                 for a in cols]
+        lines.append(f"{nv:>4}{_mean([c.instance.n_objects for c in group]):>6.0f}{total_kb:>6.0f} |"
+                     + "".join(f"{x:>16}" for x in cells))
     return lines
 
 
@@ -432,7 +458,8 @@ def main(argv: list[str] | None = None) -> int:
         cases += scale_series(series, args.seed, seeds, repeats)
     cases += small_series(args.seed, n_small)
 
-    for lines in (reward_table(cases), time_table(cases), small_table([c for c in cases if c.series == "small"])):
+    for lines in (reward_table(cases), time_table(cases), airtime_table(cases),
+                  small_table([c for c in cases if c.series == "small"])):
         print("\n".join(lines))
         print()
     png = args.out / "scheduler.png"
@@ -444,6 +471,10 @@ def main(argv: list[str] | None = None) -> int:
     at40 = [c for c in cases if c.series == "10 x 10 ms" and c.n_vehicles == 40]
     greedy40 = statistics.median(c.runs[STARVED].ms for c in at40)
     fptas40 = statistics.median(c.runs["fptas"].ms for c in at40)
+    wc40 = statistics.median(c.runs[WORK_CONSERVING].ms for c in at40)
+    wc_bytes = statistics.fmean(c.runs[WORK_CONSERVING].sent_bytes / c.runs["agnostic"].sent_bytes
+                                for c in scale if c.runs["agnostic"].sent_bytes)
+    print(f"work-conserving: autocast40_ms={wc40:.3f} autocast_over_agnostic_bytes={wc_bytes:.3f}")
     print(
         f"scheduler: greedy_vs_optimal={min(feasible):.3f} agnostic_vs_greedy={statistics.fmean(ratios(scale, 'agnostic', 'greedy')):.3f} "
         f"greedy40_ms={greedy40:.3f} fptas_over_greedy_time={fptas40 / greedy40:.0f}"

@@ -8,6 +8,7 @@ sensor frame (origin at the LiDAR, x forward, y left, z up).
 
 from __future__ import annotations
 
+from dataclasses import field
 from typing import Any
 
 import numpy as np
@@ -197,9 +198,19 @@ class ObjectMap:
     relevance: np.ndarray  # float32 (n, m), r_(i,k),j in [0, 1]
 
 
-@message(7)
+def _no_counts() -> np.ndarray:
+    return np.zeros(0, dtype=np.int64)
+
+
+@message(7, version=2)
 class ControlMsg:
-    """One vehicle's control message for a decision interval (paper 4.1)."""
+    """One vehicle's control message for a decision interval (paper 4.1).
+
+    ``unscheduled[t]`` is m of object ``objects.object_id[t]``: the intervals in a row it
+    has gone unscheduled while still occluded from and relevant to some receiver, as its
+    sender counted them (the starvation compensation's state, so every vehicle that
+    hears the message weighs the object alike); empty means 0 for every object.
+    Version 2 added it."""
 
     tick: int
     t_sim_s: float
@@ -209,6 +220,17 @@ class ControlMsg:
     trajectory: np.ndarray  # float32 (p, 3): waypoints [x_m, y_m, t_sim_s], down-sampled
     objects: ObjectMap
     heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
+    unscheduled: np.ndarray = field(default_factory=_no_counts)  # int64 (n,) or (0,): m per object
+
+    def __post_init__(self) -> None:
+        if len(self.unscheduled) not in (0, len(self.objects.object_id)):
+            raise ValueError(f"{len(self.unscheduled)} unscheduled counts for {len(self.objects.object_id)} objects")
+
+    def starvation(self) -> np.ndarray:
+        """int64 (n,): m of every object of the map (zeros if none was reported)."""
+        if len(self.unscheduled):
+            return np.asarray(self.unscheduled, dtype=np.int64)
+        return np.zeros(len(self.objects.object_id), dtype=np.int64)
 
 
 @message(8, version=2)

@@ -8,14 +8,16 @@ import pytest
 
 from channel_proxy import loss, medium
 from protocol.messages import ControlMsg, ObjectMap, Pose
-from vehicle_agent.agreement import (AgreementConfig, agreed_p, decide, frames_of, group_of, members, n_groups, plan)
-from vehicle_agent.scheduler import make_instance
+from vehicle_agent.agreement import (AgreementConfig, agreed_p, agreed_state, decide, frames_of, group_of,
+                                     group_schedule, members, n_groups, plan, unscheduled_after)
+from vehicle_agent.scheduler import get, make_instance
 
 GROUPED = AgreementConfig()
 
 
-def msg(vid: int, tick: int, heard, objects=(), xy=(0.0, 0.0)) -> ControlMsg:
-    """``objects``: (object id, size, {receiver: y}), with v = 0 and r = y."""
+def msg(vid: int, tick: int, heard, objects=(), xy=(0.0, 0.0), unscheduled=None) -> ControlMsg:
+    """``objects``: (object id, size, {receiver: y}), with v = 0 and r = y;
+    ``unscheduled``: {object id: m} the sender reports (0 for the others)."""
     receivers = sorted({j for _, _, ys in objects for j in ys})
     n, m = len(objects), len(receivers)
     rel = np.zeros((n, m), dtype=np.float32)
@@ -24,8 +26,9 @@ def msg(vid: int, tick: int, heard, objects=(), xy=(0.0, 0.0)) -> ControlMsg:
             rel[t, receivers.index(j)] = y
     om = ObjectMap(np.array([o for o, _, _ in objects], dtype=np.int64), np.array([s for _, s, _ in objects], dtype=np.int64),
                    np.zeros((n, 2), np.float32), np.array(receivers, dtype=np.int64), np.zeros((n, m), np.float32), rel)
+    m = np.array([(unscheduled or {}).get(o, 0) for o, _, _ in objects], dtype=np.int64)
     return ControlMsg(tick, tick * 0.1, vid, Pose(xy[0], xy[1], 0.0), 0.0, np.zeros((2, 3), np.float32), om,
-                      np.array(sorted(heard), dtype=np.int64))
+                      np.array(sorted(heard), dtype=np.int64), m)
 
 
 # ------------------------------------------------------------------ the steps
@@ -181,6 +184,101 @@ def test_the_paper_rule_collides_under_the_same_loss():
     out = medium.play_data(vids, sender, item, start, size, ones, ones.astype(bool), bandwidth_bps=7.2e6,
                            interval_s=0.1, seed=0, tick=0)
     assert out.collided.any(axis=1).mean() > 0.2
+
+
+# ------------------------------------------------------------------ starvation, agreed
+
+
+# one 9000 B frame per interval (T_n = 10 ms, N = 1); 1 and 2 are 10 m apart (p = 1).
+# 1 offers object 5 (8000 B, y = 1.0 to 2), 2 offers object 6 (8000 B, y = 0.9 to 1):
+# one fits a frame. Plain H/s always picks 5. With m reported by the senders: interval
+# 3, m = (0, 0): 5; 2 counts m = 1 for 6. Interval 4: m = (0, 1), mean 0.5, var 0.25 ->
+# max(var, 1) = 1, boost 1 + m = 2 for 6: 1.8 / 8000 > 1.0 / 8000, so 6; 1 counts m = 1
+# for 5. Interval 5: 5 again (2.0 > 0.9), and so on.
+ONE_FRAME = AgreementConfig(n_frames=1)
+
+
+def _pair(tick, m1, m2, heard=(1, 2, 3)):
+    a = msg(1, tick, [v for v in heard if v != 1], [(5, 8000, {2: 1.0})], xy=(0.0, 0.0), unscheduled=m1)
+    b = msg(2, tick, [v for v in heard if v != 2], [(6, 8000, {1: 0.9})], xy=(10.0, 0.0), unscheduled=m2)
+    return a, b
+
+
+def test_reported_starvation_alternates_two_objects_that_do_not_fit_together():
+    m1, m2, sent = {}, {}, []
+    for tick in (3, 4, 5, 6):
+        a, b = _pair(tick, m1, m2, heard=(1, 2))
+        pa, pb = plan(decide(1, tick, a, [b], ONE_FRAME), ONE_FRAME), plan(decide(2, tick, b, [a], ONE_FRAME), ONE_FRAME)
+        sent.append([(t.object_id, t.start_s) for t in pa + pb])
+        m1, m2 = unscheduled_after(a, [t.object_id for t in pa]), unscheduled_after(b, [t.object_id for t in pb])
+    assert sent == [[(5, 0.0)], [(6, 0.0)], [(5, 0.0)], [(6, 0.0)]]
+    assert (m1, m2) == ({5: 1}, {})
+    plain = AgreementConfig(n_frames=1, scheduler="greedy-plain")
+    a, b = _pair(4, {}, {6: 1}, heard=(1, 2))
+    assert [t.object_id for t in plan(decide(1, 4, a, [b], plain), plain)] == [5]  # without compensation: 5 again
+
+
+def test_a_vehicle_that_missed_last_interval_still_weighs_alike():
+    # 3 heard nothing in interval 3 and kept no counters of the others; in interval 4 it
+    # hears 1 and 2, whose messages carry m: its group schedule is theirs
+    a, b = _pair(4, {}, {6: 1})
+    c = msg(3, 4, [1, 2], [], xy=(20.0, 0.0))
+    views = [decide(1, 4, a, [b, c], ONE_FRAME), decide(2, 4, b, [c, a], ONE_FRAME), decide(3, 4, c, [a, b], ONE_FRAME)]
+    assert all(d.transmits for d in views)
+    schedules = [group_schedule(d, ONE_FRAME) for d in views]
+    assert {s.keyed(i) for i, _, s in schedules} == {(((2, 6),),)}
+    assert all(st.starved() == {(2, 6): 1} for _, st, _ in schedules)
+    # a vehicle that missed 2's message now does not transmit at all
+    assert not decide(3, 4, c, [a], ONE_FRAME).transmits
+    assert agreed_state(decide(1, 4, a, [b, c], ONE_FRAME)).starved() == {(2, 6): 1}
+
+
+def test_unscheduled_counts_only_wanted_objects_left_out():
+    own = msg(1, 3, [2], [(5, 900, {2: 1.0}), (6, 900, {2: 0.0}), (7, 900, {2: 0.5})], unscheduled={7: 2, 6: 4})
+    assert unscheduled_after(own, [5]) == {7: 3}  # 5 sent, 6 wanted by nobody: m = 0
+    assert unscheduled_after(own, []) == {5: 1, 7: 3}  # a silent vehicle skipped them all
+
+
+def test_starvation_agrees_and_never_collides_over_intervals_under_loss():
+    """20 vehicles, 20% control loss, 6 intervals; each sender counts its own objects'
+    m from its own plan and reports them. Every interval: no two transmissions
+    overlap, and all complete members of a group hold the same compensated state and
+    schedule, whatever else each of them heard or missed."""
+    rng = np.random.default_rng(21)
+    vids = list(range(200, 220))
+    q = 0.2
+    objects = {v: [(v * 100 + k, int(rng.integers(2000, 6000)),
+                    {int(j): float(rng.uniform(0.2, 1.0)) for j in rng.choice([u for u in vids if u != v], 2, replace=False)})
+                   for k in range(4)] for v in vids}
+    xy = {v: tuple(rng.uniform(-40, 40, 2)) for v in vids}
+    heard_last = {v: [u for u in vids if u != v] for v in vids}
+    counters = {v: {} for v in vids}
+    reported, differs, agreed_groups = 0, 0, 0
+    for tick in range(10, 16):
+        msgs = {v: msg(v, tick, heard_last[v], objects[v], xy=xy[v], unscheduled=counters[v]) for v in vids}
+        reported += sum(int((m.unscheduled > 0).sum()) for m in msgs.values())
+        sender, start, size, item, by_group = [], [], [], [], {}
+        for c, v in enumerate(vids):
+            heard_now = [msgs[u] for u in vids if u != v and rng.random() > q]
+            heard_last[v] = sorted(m.vid for m in heard_now)
+            d = decide(v, tick, msgs[v], heard_now, GROUPED)
+            mine = plan(d, GROUPED)
+            counters[v] = unscheduled_after(msgs[v], [t.object_id for t in mine])
+            for t in mine:
+                sender.append(c), start.append(t.start_s), size.append(t.size_bytes), item.append(t.object_id)
+            if d.transmits:
+                inst, state, s = group_schedule(d, GROUPED)
+                by_group.setdefault(tuple(d.group.tolist()), set()).add(
+                    (s.keyed(inst), tuple(state.starvation(inst).tolist())))
+                differs += s.primary().keyed(inst) != get("greedy-plain")(inst, state).keyed(inst)
+        assert all(len(views) == 1 for views in by_group.values())  # one compensated schedule per group
+        agreed_groups += len(by_group)
+        n = len(vids)
+        out = medium.play_data(np.array(vids), np.array(sender, int), np.array(item, int), np.array(start),
+                               np.array(size, int), np.ones((n, n)), np.ones((n, n), bool), bandwidth_bps=7.2e6,
+                               interval_s=0.1, seed=0, tick=tick)
+        assert not out.collided.any() and not out.overflow.any()
+    assert reported > 20 and differs > 0 and agreed_groups > 20  # compensation was in play and changed schedules
 
 
 def test_the_agreed_link_table_equals_asking_pair_by_pair():

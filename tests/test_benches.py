@@ -36,6 +36,9 @@ def test_each_bench_prints_its_headline_in_quick_mode(name, tmp_path):
     if name == "scheduler":
         assert 0.0 < figures["greedy_vs_optimal"] <= 1.0 and 0.0 < figures["agnostic_vs_greedy"] <= 1.0
         assert (tmp_path / "runs" / "bench_scheduler" / "scheduler.png").stat().st_size > 10_000
+        wc = re.fullmatch(r"work-conserving: autocast40_ms=([\d.]+) autocast_over_agnostic_bytes=([\d.]+)",
+                          res.stdout.strip().splitlines()[-2])
+        assert wc and float(wc.group(1)) > 0.0 and float(wc.group(2)) >= 1.0, res.stdout[-500:]
     if name == "pipeline":
         assert figures["rtf5"] > 0.0 and figures["agent_ms"] > 0.0
 

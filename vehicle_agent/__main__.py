@@ -26,7 +26,7 @@ from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Sc
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
 from vehicle_agent.agent import Agent, LaneFollower, timed
-from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.agreement import AgreementConfig, decide, unscheduled_after
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.link import V2VLink
@@ -173,6 +173,7 @@ class Pipeline:
         self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
                                                       scheduler=scheduler or SCHEDULER_OF.get(scheme, "autocast"))
         self.heard: list[int] = []
+        self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report_pub = reliable_publisher(session, keys.report(run, mission.vid)) if mission.role == "ego" else None
         self.timings: dict[str, list[float]] = {}
@@ -216,7 +217,7 @@ class Pipeline:
     def _share(self, view, scan: Scan) -> list[bytes]:
         """Control message -> what we heard -> the agreed schedule -> our slots -> what we decoded."""
         agent, link = self.agent, self.link
-        own = agent.control_message(view, scan, self.heard)
+        own = agent.control_message(view, scan, self.heard, self.unscheduled)
         with timed(agent.timings_ms, "link"):
             heard = link.exchange_control(own)
         self.heard = sorted(m.vid for m in heard)
@@ -224,6 +225,7 @@ class Pipeline:
         with timed(agent.timings_ms, "schedule"):
             decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
             slots = plan_transmissions(decision, self.agreement)
+            self.unscheduled = unscheduled_after(own, [t.object_id for t in slots])
         with timed(agent.timings_ms, "encoding"):
             blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
             txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]

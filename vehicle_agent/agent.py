@@ -11,6 +11,7 @@ wall time counts the waits for a core, the CPU time is the stage's own cost.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -46,12 +47,14 @@ class Agent:
         with timed(self.timings_ms, "perception"):
             return self.dataplane.perceive(scan, extra_world)
 
-    def control_message(self, view: View, scan: Scan, heard: list[int]) -> ControlMsg:
-        """What this vehicle broadcasts: pose, planned trajectory, object map."""
+    def control_message(self, view: View, scan: Scan, heard: list[int],
+                        unscheduled: Mapping[int, int] | None = None) -> ControlMsg:
+        """What this vehicle broadcasts: pose, planned trajectory, object map, and the
+        starvation counter of each of its objects."""
         with timed(self.timings_ms, "spatial_reasoning"):
             traj = self.last_plan.trajectory if self.last_plan is not None else \
                 np.array([[scan.pose.x_m, scan.pose.y_m, scan.t_sim_s]], dtype=np.float32)
-            return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard)
+            return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard, unscheduled)
 
     def fuse(self, view: View, payloads: list[bytes]) -> FusedGrid:
         with timed(self.timings_ms, "fusion"):

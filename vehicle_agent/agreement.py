@@ -46,10 +46,13 @@ behaviour (schedule over whatever was heard, always transmit), for comparison.
 p_ij in the instance must be agreed too: it is the reception model (``channel_proxy.loss``,
 the proxy's own) at the distance between two group members' reported poses, and the
 model at the domain radius for a receiver outside the group, whose fresh pose not every
-member holds. Scheduler state is not carried across intervals: it would diverge between
-vehicles that heard different messages. ``agreed_state`` derives one from the decision
-alone: no starvation counters, and agnostic's round robin starting at a group member
-picked by the tick.
+member holds. Scheduler state is not carried across intervals by the vehicles that
+schedule: it would diverge between vehicles that heard different messages.
+``agreed_state`` derives it from the decision alone: the starvation counters m are
+those the group members' own messages report for their objects (``ControlMsg.unscheduled``,
+each sender counting its own objects with ``unscheduled_after``), and agnostic's round
+robin starts at a group member picked by the tick. So every complete member weighs the
+group's objects with the same compensated H/s.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ import numpy as np
 
 from channel_proxy.loss import PrrModel, keyed_uniform, link_probabilities
 from protocol.messages import ControlMsg
-from vehicle_agent.scheduler import SchedulerState, SenderOffers, get, make_instance, tdma_plan
+from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
 
 RULES = ("grouped", "heard")
 GROUPING_SALT = 0x61677265  # keys the grouping hash apart from the channel's loss draws
@@ -238,14 +241,51 @@ class AgreedLinks:
 
 
 def agreed_state(decision: Decision) -> SchedulerState:
-    """Scheduler state every group member derives alike: no starvation counters, and a
+    """Scheduler state every group member derives alike from the messages it schedules
+    over: the starvation counters m their senders report for their own objects, and a
     round-robin cursor just before the first object of the group member the tick picks
     (``group[tick mod |group|]``), so agnostic's rotation moves on every interval
     without a carried cursor, which would diverge between vehicles."""
     if len(decision.group) == 0:
         return SchedulerState()
     first = int(decision.group[decision.tick % len(decision.group)])
-    return SchedulerState(cursor=(first, _BEFORE_ANY_OBJECT))
+    vid, oid, m = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for v, msg in decision.messages.items():
+        counts = msg.starvation()
+        starved = counts > 0
+        vid.append(np.full(int(starved.sum()), v, dtype=np.int64))
+        oid.append(np.asarray(msg.objects.object_id, dtype=np.int64)[starved])
+        m.append(counts[starved])
+    vid, oid, m = np.concatenate(vid), np.concatenate(oid), np.concatenate(m)
+    order = np.lexsort((oid, vid))  # SchedulerState keeps its keys ascending by (vid, object id)
+    return SchedulerState(np.stack([vid[order], oid[order]], axis=1), m[order], cursor=(first, _BEFORE_ANY_OBJECT))
+
+
+def unscheduled_after(own: ControlMsg, sent: Iterable[int]) -> dict[int, int]:
+    """A sender's starvation counters for its next control message, by object id: m + 1
+    for each object of ``own`` still wanted (some y = (1 - v) r > 0, the instance's
+    ``wanted``) that is not among its ``sent`` object ids this interval (a silent
+    vehicle sent nothing), and no entry (m = 0) for the others; an object it no longer
+    tracks is forgotten with its track."""
+    om = own.objects
+    y = (1.0 - np.asarray(om.visibility, dtype=np.float64)) * np.asarray(om.relevance, dtype=np.float64)
+    wanted = np.any(y > 0.0, axis=1) if y.size else np.zeros(len(om.object_id), dtype=bool)
+    skipped = wanted & ~np.isin(np.asarray(om.object_id, dtype=np.int64), np.fromiter(sent, dtype=np.int64))
+    m = own.starvation() + 1
+    return {int(k): int(c) for k, c in zip(np.asarray(om.object_id)[skipped].tolist(), m[skipped].tolist())}
+
+
+def group_schedule(decision: Decision, config: AgreementConfig) -> tuple[Instance, SchedulerState, Schedule]:
+    """The group's instance, the agreed state and the scheduler's schedule over them:
+    identical on every vehicle whose ``decision.transmits``."""
+    offers = {v: offers_of(m) for v, m in decision.messages.items()}
+    instance = make_instance(
+        offers, agreed_p(decision, config), vids=decision.members.tolist() + list(decision.messages),
+        bandwidth_bps=config.bandwidth_bps, frame_duration_s=config.frame_duration_s,
+        decision_interval_s=len(decision.frames) * config.frame_duration_s,
+    )
+    state = agreed_state(decision)
+    return instance, state, get(config.scheduler)(instance, state)
 
 
 def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
@@ -253,13 +293,7 @@ def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
     the scheduler run on its group's instance, laid out in its group's frames."""
     if not decision.transmits:
         return ()
-    offers = {v: offers_of(m) for v, m in decision.messages.items()}
-    instance = make_instance(
-        offers, agreed_p(decision, config), vids=decision.members.tolist() + list(decision.messages),
-        bandwidth_bps=config.bandwidth_bps, frame_duration_s=config.frame_duration_s,
-        decision_interval_s=len(decision.frames) * config.frame_duration_s,
-    )
-    schedule = get(config.scheduler)(instance, agreed_state(decision))
+    instance, _, schedule = group_schedule(decision, config)
     layout = tdma_plan(instance, schedule)
     out = []
     for t in layout.sent_by(decision.vid):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -182,11 +183,16 @@ class DataPlane:
                          np.array([nb.vid for nb in receivers], dtype=np.int64),
                          np.ascontiguousarray(vis.T), np.ascontiguousarray(rel.T))
 
-    def control_message(self, view: View, scan: Scan, trajectory: np.ndarray, heard: list[int]) -> ControlMsg:
+    def control_message(self, view: View, scan: Scan, trajectory: np.ndarray, heard: list[int],
+                        unscheduled: Mapping[int, int] | None = None) -> ControlMsg:
+        """``unscheduled``: the starvation counter m of each object id (0 if absent),
+        from ``agreement.unscheduled_after`` on the previous interval."""
         neighbors = self.neighbors.current(view.t_sim_s, exclude=self.mission.vid)
         objects = self.object_map(view, neighbors)
+        counts = unscheduled or {}
+        m = np.array([counts.get(int(k), 0) for k in objects.object_id.tolist()], dtype=np.int64)
         return ControlMsg(view.tick, view.t_sim_s, self.mission.vid, view.pose, scan.speed_mps, trajectory, objects,
-                          np.array(sorted(heard), dtype=np.int64))
+                          np.array(sorted(heard), dtype=np.int64), m)
 
     # ----------------------------------------------------------------- share
 

@@ -9,6 +9,7 @@ Pure algorithms over a canonical ``Instance``; every agent calls them identicall
 """
 
 from vehicle_agent.scheduler.agnostic import agnostic_schedule
+from vehicle_agent.scheduler.fill import fill_order, work_conserving
 from vehicle_agent.scheduler.greedy import greedy_schedule
 from vehicle_agent.scheduler.instance import (
     Instance,
@@ -48,6 +49,7 @@ __all__ = [
     "agnostic_schedule",
     "check_schedule",
     "expected_reward",
+    "fill_order",
     "frame_weights",
     "get",
     "greedy_schedule",
@@ -63,4 +65,5 @@ __all__ = [
     "register",
     "tdma_plan",
     "weight_H",
+    "work_conserving",
 ]

@@ -1,4 +1,5 @@
-"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation.
+"""Greedy max-weight scheduler (paper Algorithm 1) with starvation compensation, and
+AutoCast's scheduler: the same, its frames' spare airtime filled (``fill.py``).
 
 Starvation: the paper replaces H/s by H / (s / var_s) * m / var_m. var_s is common to
 every object of an interval, so it scales all keys alike and is dropped; m / var_m
@@ -12,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from vehicle_agent.scheduler.fill import work_conserving
 from vehicle_agent.scheduler.instance import Instance, Schedule
 from vehicle_agent.scheduler.registry import register
 from vehicle_agent.scheduler.state import SchedulerState
@@ -143,10 +145,17 @@ def greedy_schedule(instance: Instance, starvation: np.ndarray | None = None) ->
     return Schedule(tuple(tuple(np.flatnonzero(row).tolist()) for row in x))
 
 
-@register("greedy", "autocast")
+@register("greedy")
 def greedy(instance: Instance, state: SchedulerState) -> Schedule:
-    """AutoCast's scheduler: greedy max-weight with starvation compensation."""
+    """Algorithm 1 with starvation compensation: only objects of positive weight."""
     return greedy_schedule(instance, state.starvation(instance))
+
+
+@register("autocast")
+def autocast(instance: Instance, state: SchedulerState) -> Schedule:
+    """AutoCast's scheduler: Algorithm 1 with starvation compensation, then the frames'
+    spare airtime filled with the remaining objects (work-conserving, ``fill.py``)."""
+    return work_conserving(instance, greedy(instance, state), state.cursor)
 
 
 @register("greedy-plain")

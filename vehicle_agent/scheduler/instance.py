@@ -59,9 +59,14 @@ class Instance:
     n_frames: int  # N
     frame_duration_s: float  # T_n
     bandwidth_bps: float  # B
+    unseen: np.ndarray | None = None  # float64 (K,), sum_j (1 - v_(i,k),j) over the receivers i named; zeros if None
 
     def __post_init__(self) -> None:
         C, K = len(self.vids), len(self.object_id)
+        if self.unseen is None:
+            object.__setattr__(self, "unseen", np.zeros(K))
+        _check(self.unseen.dtype == np.float64 and self.unseen.shape == (K,), "unseen must be float64 (K,)")
+        _check(bool(np.all(self.unseen >= 0.0)), "unseen must be >= 0")
         _check(self.vids.dtype == np.int64 and self.vids.shape == (C,), "vids must be int64 (C,)")
         _check(bool(np.all(np.diff(self.vids) > 0)), "vids must be strictly ascending")
         for name in ("owner", "object_id", "size_bytes"):
@@ -81,7 +86,7 @@ class Instance:
         _check(bool(np.all((self.reward >= 0.0) & (self.reward <= 1.0))), "reward must lie in [0, 1]")
         _check(bool(np.all((self.p_deliver >= 0.0) & (self.p_deliver <= 1.0))), "p_deliver must lie in [0, 1]")
         _check(self.frame_bytes >= 0 and self.n_frames >= 0, "frame_bytes and n_frames must be >= 0")
-        for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history"):
+        for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history", "unseen"):
             getattr(self, name).setflags(write=False)
 
     @property
@@ -112,13 +117,28 @@ def _check(ok: bool, what: str) -> None:
 
 @dataclass(frozen=True, slots=True)
 class Schedule:
-    """x^n_(i,k): for each of the N frames, the object indices sent in it (ascending)."""
+    """x^n_(i,k): for each of the N frames, the object indices sent in it (ascending).
+
+    ``fill`` (empty, or one tuple per frame) marks the objects of ``frames`` that only
+    take the frame's spare airtime (work-conserving AutoCast, ``fill.py``): the TDMA
+    layout puts them after every other transmission of their frame."""
 
     frames: tuple[tuple[int, ...], ...]
+    fill: tuple[tuple[int, ...], ...] = ()
 
     @staticmethod
     def from_sets(frames: Iterable[Iterable[int]]) -> Schedule:
         return Schedule(tuple(tuple(sorted(int(k) for k in f)) for f in frames))
+
+    def filled(self, n: int) -> tuple[int, ...]:
+        """The spare-airtime objects of frame ``n`` (ascending)."""
+        return self.fill[n] if self.fill else ()
+
+    def primary(self) -> Schedule:
+        """The schedule without its spare-airtime objects."""
+        if not self.fill:
+            return self
+        return Schedule(tuple(tuple(k for k in f if k not in set(g)) for f, g in zip(self.frames, self.fill)))
 
     def matrix(self, n_objects: int) -> np.ndarray:
         """bool (N, K): x^n_(i,k)."""
@@ -156,9 +176,10 @@ def instance_from_arrays(
     history: np.ndarray | None = None,
     bandwidth_bps: float = DEFAULT_BANDWIDTH_BPS,
     frame_duration_s: float | None = None,
+    unseen: np.ndarray | None = None,
 ) -> Instance:
     """Canonicalise arrays given in any order: ``reward``/``history`` are (K, C) and
-    ``p_deliver`` (C, C), their vehicle axes in the order of ``vids``."""
+    ``p_deliver`` (C, C), their vehicle axes in the order of ``vids``; ``unseen`` (K,)."""
     vids, owner_vid, object_id, size_bytes = (_ints(a) for a in (vids, owner_vid, object_id, size_bytes))
     reward = np.asarray(reward, dtype=np.float64).reshape(len(object_id), len(vids))
     p_deliver = np.asarray(p_deliver, dtype=np.float64).reshape(len(vids), len(vids))
@@ -192,6 +213,7 @@ def instance_from_arrays(
         n_frames=int(n_frames),
         frame_duration_s=float(frame_duration_s),
         bandwidth_bps=float(bandwidth_bps),
+        unseen=None if unseen is None else np.asarray(unseen, dtype=np.float64).reshape(len(object_id))[korder].copy(),
     )
 
 
@@ -252,12 +274,17 @@ def make_instance(
         all_vids.update(np.asarray(b.receivers).tolist())
     vid_arr = np.array(sorted(all_vids), dtype=np.int64)
     C = len(vid_arr)
-    blocks = []
-    for _, b in senders:
+    blocks, unseen = [], []
+    for i, b in senders:
         y = np.zeros((len(b.object_id), C))
+        hidden = np.zeros((len(b.object_id), C))
         v, r = np.asarray(b.visibility, dtype=np.float64), np.asarray(b.relevance, dtype=np.float64)
-        y[:, np.searchsorted(vid_arr, b.receivers)] = (1.0 - v) * r  # y = (1 - v) * r
+        cols = np.searchsorted(vid_arr, b.receivers)
+        y[:, cols] = (1.0 - v) * r  # y = (1 - v) * r
+        hidden[:, cols] = np.clip(1.0 - v, 0.0, 1.0)
+        hidden[:, np.searchsorted(vid_arr, i)] = 0.0  # the sender sees its own object
         blocks.append(y)
+        unseen.append(hidden.sum(axis=1))  # summed in vid order: bit-equal on every vehicle
     reward = np.concatenate(blocks) if blocks else np.zeros((0, C))
     owner_vid = np.concatenate([np.full(len(b.object_id), i, dtype=np.int64) for i, b in senders] or [np.zeros(0, np.int64)])
     object_id = np.concatenate([np.asarray(b.object_id, dtype=np.int64) for _, b in senders] or [np.zeros(0, np.int64)])
@@ -291,6 +318,7 @@ def make_instance(
         history=hist,
         bandwidth_bps=bandwidth_bps,
         frame_duration_s=frame_duration_s,
+        unseen=np.concatenate(unseen) if unseen else np.zeros(0),
     )
 
 

@@ -12,6 +12,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from vehicle_agent.scheduler.fill import work_conserving
 from vehicle_agent.scheduler.instance import Instance, Schedule, deliver_expected, weight_H
 from vehicle_agent.scheduler.registry import register
 from vehicle_agent.scheduler.state import SchedulerState
@@ -163,10 +164,16 @@ def frame_by_frame(instance: Instance, solve_frame: FrameSolver) -> Schedule:
     return Schedule(tuple(frames))
 
 
-@register("fptas", "autocast-fptas")
+@register("fptas")
 def fptas(instance: Instance, state: SchedulerState, epsilon: float = DEFAULT_EPSILON) -> Schedule:
     """Per-frame FPTAS knapsack on H (paper's FPTAS-based scheduler)."""
     return frame_by_frame(instance, lambda H, s, cap: knapsack_fptas(H, s, cap, epsilon))
+
+
+@register("autocast-fptas")
+def autocast_fptas(instance: Instance, state: SchedulerState) -> Schedule:
+    """The FPTAS scheduler, its frames' spare airtime filled as AutoCast's (``fill.py``)."""
+    return work_conserving(instance, fptas(instance, state), state.cursor)
 
 
 @register("knapsack")

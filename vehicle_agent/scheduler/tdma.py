@@ -2,8 +2,10 @@
 
 Frame n starts at n * T_n. Inside it, senders take turns in decreasing order of the
 summed reward of the objects they send in that frame (ties: lower vid first), each
-sending its objects back to back, highest reward first (ties: lower object id). An
-object of s bytes lasts s * 8 / B seconds. Every agent computes the same layout from
+sending its objects back to back, highest reward first (ties: lower object id). The
+objects a work-conserving schedule put in the frame's spare airtime (``Schedule.fill``)
+follow all of those, laid out by the same rule among themselves, so they delay
+nothing. An object of s bytes lasts s * 8 / B seconds. Every agent computes the same layout from
 the same schedule, so a sender knows its slot and a receiver knows when to listen.
 """
 
@@ -66,14 +68,16 @@ def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
     sizes = instance.size_bytes.tolist()
     out: list[Transmission] = []
     for n, frame in enumerate(schedule.frames):
-        by_sender: dict[int, list[int]] = {}
-        for k in frame:
-            by_sender.setdefault(owner[k], []).append(k)
-        senders = sorted(by_sender, key=lambda i: (-sum(total_reward[k] for k in by_sender[i]), vids[i]))
+        spare = set(schedule.filled(n))
         t = n * frame_s
-        for i in senders:
-            for k in sorted(by_sender[i], key=lambda k: (-total_reward[k], oids[k])):
-                duration = sizes[k] * 8.0 / instance.bandwidth_bps
-                out.append(Transmission(n, vids[i], oids[k], k, t, duration, sizes[k]))
-                t += duration
+        for part in ([k for k in frame if k not in spare], sorted(spare)):
+            by_sender: dict[int, list[int]] = {}
+            for k in part:
+                by_sender.setdefault(owner[k], []).append(k)
+            senders = sorted(by_sender, key=lambda i: (-sum(total_reward[k] for k in by_sender[i]), vids[i]))
+            for i in senders:
+                for k in sorted(by_sender[i], key=lambda k: (-total_reward[k], oids[k])):
+                    duration = sizes[k] * 8.0 / instance.bandwidth_bps
+                    out.append(Transmission(n, vids[i], oids[k], k, t, duration, sizes[k]))
+                    t += duration
     return TdmaPlan(tuple(out), frame_s)

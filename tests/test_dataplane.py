@@ -12,7 +12,7 @@ from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, enc
 from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _merge_shadowed,
                                       _object_stats, build_grid, extract_objects, label_components)
 from vehicle_agent.spatial import relevance, visibility, visible_share
-from vehicle_agent.tracking import Tracker, _share_in
+from vehicle_agent.tracking import Tracker
 from world_server import lidar
 from world_server.geometry import box_corners
 
@@ -77,7 +77,7 @@ def test_empty_cells_behind_an_object_are_occluded_area():
 def test_tracking_keeps_ids_and_estimates_velocity():
     tracker = Tracker()
     ids, vel = [], None
-    for k in range(15):  # motion is judged over a 1 s window: 10 ticks
+    for k in range(15):
         x = 20.0 + 1.0 * k  # 10 m/s along x, 0.1 s per tick
         _, objs = perceive([[x, 3.5, 0.0, 4.5, 1.8, 1.5], [15.0, -6.0, 0.0, 4.5, 1.8, 1.5]])
         tracks = tracker.update(objs, 0.1 * k)
@@ -125,18 +125,6 @@ def test_a_part_in_anothers_shadow_merges_only_across_unseen_cells(between, part
     merged, k = _merge_shadowed(labels, k, grid, (0.0, 0.0))
     assert k == parts and sorted(np.unique(merged).tolist()) == list(range(parts + 1))
     assert np.array_equal(merged > 0, labels > 0)
-
-
-def test_share_of_cells_kept_matches_isin():
-    rng = np.random.default_rng(3)
-    past = np.unique(rng.integers(0, 200, 120))
-    parts = [np.unique(rng.integers(0, 260, n)) for n in (7, 0, 30, 1, 12)]  # one detection's cells each
-    counts = np.array([len(p) for p in parts])
-    ids = np.concatenate(parts)
-    reference = [np.isin(p, past).mean() if len(p) else 0.0 for p in parts]
-    assert _share_in(ids, counts, past) == pytest.approx(reference)
-    assert _share_in(ids, counts, None) is None
-    assert _share_in(ids, counts, np.zeros(0, np.int64)).tolist() == [0.0] * len(counts)
 
 
 def _quad(cx, cy, yaw, length, width):

@@ -11,7 +11,7 @@ from vehicle_agent.frames import scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _merge_shadowed,
                                       _object_stats, build_grid, extract_objects, label_components)
-from vehicle_agent.spatial import relevance, visibility, visible_share
+from vehicle_agent.spatial import relevance, sample_trajectory, visibility, visible_share
 from vehicle_agent.tracking import Tracker
 from world_server import lidar
 from world_server.geometry import box_corners
@@ -174,6 +174,54 @@ def test_crossing_trajectories_are_relevant_parallel_ones_are_not():
     ttc = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[20.0, 0.0]]), np.array([[-5.0, 0.0]]),
                     np.array([[4.5, 1.8]]), 0.0, mode="ttc")
     assert 1 / (1 + 4.0) < ttc[0, 0] < 1 / (1 + 3.0)
+
+
+@pytest.mark.parametrize("late_s, relevant", [(0.0, 1.0), (1.5, 1.0), (-1.5, 1.0), (3.5, 0.0), (-3.5, 0.0)])
+def test_an_object_that_could_collide_within_the_timing_window_is_relevant(late_s, relevant):
+    """j drives north through the origin at t = 4 s; the object crosses it westwards
+    ``late_s`` later. Bodies within 1 m while the object is within +-2 s of that moment
+    count: by hand, the object is 5 m per s x 2 s = 10 m along its lane from the
+    crossing at the window's edge, far more than the bodies' 2.8 m plus 1.35 m reach."""
+    t = np.arange(0.0, 9.0, 1.0)
+    j_traj = np.stack([np.zeros_like(t), -20.0 + 5.0 * t, t], axis=1)
+    x0 = 5.0 * (4.0 + late_s)  # at the origin at 4 + late_s
+    r = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[x0, 0.0]]), np.array([[-5.0, 0.0]]),
+                  np.array([[4.5, 1.8]]), 0.0)
+    assert r[0, 0] == relevant
+
+
+def test_relevance_matches_a_dense_reference_on_random_traffic():
+    """The kernel against a direct evaluation: j's three circles at each sample time
+    against k's three circles at every time of the window, sampled every 0.01 s."""
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 9.0, 1.0)
+    trajs = []
+    for _ in range(4):
+        p0, v = rng.uniform(-30, 30, 2), rng.uniform(-8, 8, 2)
+        trajs.append(np.column_stack([p0[0] + v[0] * t, p0[1] + v[1] * t, t]))
+    xy, vel = rng.uniform(-30, 30, (12, 2)), rng.uniform(-8, 8, (12, 2))
+    dims = np.tile([4.5, 1.8], (12, 1))
+    got = relevance(trajs, np.tile([4.5, 1.8], (4, 1)), xy, vel, dims, 0.0)
+    times = np.arange(0.0, 8.0 + 1e-9, 0.25)
+    off = np.array([-1.0, 0.0, 1.0]) * 1.35
+    checked = 0
+    for j, wp in enumerate(trajs):
+        pos, head = sample_trajectory(wp, times)
+        cj = pos[:, None, :] + off[None, :, None] * np.stack([np.cos(head), np.sin(head)], axis=1)[:, None, :]
+        for k in range(12):
+            hk = np.arctan2(vel[k, 1], vel[k, 0])
+            d_min = np.inf
+            for ti, tt in enumerate(times):
+                tau = np.arange(max(tt - 2.0, 0.0), tt + 2.0 + 1e-9, 0.01)
+                ck = (xy[k] + tau[:, None] * vel[k])[:, None, :] + off[None, :, None] * [np.cos(hk), np.sin(hk)]
+                d_min = min(d_min, np.linalg.norm(cj[ti][:, None, None, :] - ck[None], axis=-1).min())
+            reach = 0.9 + 0.9 + 1.0
+            if d_min < reach - 0.1:  # the dense samples are 0.08 m apart at most: well inside the slack
+                assert got[j, k] == 1.0, (j, k, d_min)
+                checked += 1
+            elif d_min > reach + 0.1:
+                assert got[j, k] == 0.0, (j, k, d_min)
+    assert checked > 0
 
 
 def test_transform_round_trip_is_exact():

@@ -28,7 +28,7 @@ from vehicle_agent.tracking import Track, Tracker
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
 GUARD_BAND_M = 1.8  # 40 mph for one T_d
-TRAJECTORY_HORIZON_S = 6.0
+TRAJECTORY_HORIZON_S = 8.0  # as far as others judge relevance (spatial.HORIZON_S)
 TRAJECTORY_STEP_S = 1.0  # the shared trajectory is down-sampled to 1 s segments
 DEFAULT_DIMS = (4.5, 1.8)  # a car, for other vehicles' bodies
 

@@ -107,10 +107,11 @@ def entry_s_m(sc: Scenario) -> float:
     return float(s[inside[0]]) if inside.size else s_conflict
 
 
-def first_sights(p: ScenarioParams, cfg: LidarConfig | None = None) -> Occlusion:
-    """Replay the nominal motion of ``p``'s scene and time each vehicle's first sight."""
+def first_sights(p: ScenarioParams, cfg: LidarConfig | None = None, scenario: Scenario | None = None) -> Occlusion:
+    """Replay the nominal motion of ``p``'s scene (or of ``scenario``, built from ``p``)
+    and time each vehicle's first sight."""
     cfg = cfg or LidarConfig()
-    sc = build(p)
+    sc = scenario if scenario is not None else build(p)
     ego, col = sc.ego, sc.collider
     v = ego.speed_mps
     a_max = ego.spec.max_brake_mps2

@@ -10,11 +10,12 @@ trucks (``parked``) and the traffic that follows the collider (``traffic``), as 
 paper's authors built their scenarios (docs/scenarios.md):
 
 - overtaking: a box truck parked in the ego's lane, shifted 0.8 m toward the centre
-  line; cars follow the collider in the oncoming lane every 40 m; the collider and its
-  followers brake fully for a vehicle within three of their lengths ahead.
-- left_turn: the box truck waits inside the junction on its left-turn path, 5 m past
-  its stop line (so yawed ~30 degrees); cars follow the collider every 20 m; the
-  collider and its followers do not brake for others.
+  line; cars follow the collider in the oncoming lane (a car enters whenever the last
+  is 40 m on); the collider and its followers brake fully for a vehicle within three
+  of their lengths ahead.
+- left_turn: the box truck waits inside the junction, 3.5 m past its stop line and
+  yawed 30 degrees toward its turn; cars follow the collider (a car enters whenever the
+  last is 20 m on); the collider and its followers do not brake for others.
 - red_light: the connected box truck waits at the junction's entry in the ego's left
   lane, behind it a row of parked, unconnected box trucks one every 6 m back to 3 m
   past the ego's start; the collider runs the red from the ego's left and holds its
@@ -60,8 +61,8 @@ TRUCK_OFFSET_M = 0.8  # the parked truck stands this far toward the centre line 
 RED_LIGHT_TRUCK_INTO_BOX_M = 0.5  # the connected truck's front, past the ego's left lane's stop line
 PARKED_ROW_PITCH_M = 6.0  # the red-light row: one parked truck every 6 m ...
 PARKED_ROW_FROM_M = 3.0  # ... from 3 m past the ego's start up to the junction
-OVERTAKE_TRAFFIC_GAP_M = 40.0  # cars follow the overtaking collider this far apart
-LEFT_TURN_TRAFFIC_GAP_M = 20.0  # and the left-turn collider this far apart
+OVERTAKE_TRAFFIC_GAP_M = 40.0  # a car enters behind the overtaking collider when the last one is this far on
+LEFT_TURN_TRAFFIC_GAP_M = 20.0  # ... behind the left-turn collider
 OVERTAKE_EGO_KMH, LEFT_TURN_EGO_KMH, RED_LIGHT_EGO_KMH = 20.0, 30.0, 40.0  # the authors' evaluation speeds
 OVERTAKE_BRAKE_LENGTHS = 3.0  # the oncoming traffic brakes fully for a vehicle this many own lengths ahead
 OVERTAKE_RAMP_M = (12.0, 4.0)  # the ego's route leaves its lane this far behind the truck's centre, is
@@ -318,17 +319,20 @@ def left_turner(m: RoadMap, lane_id: str, turn_route: np.ndarray) -> Actor:
 
 def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m: float, first_vid: int,
               brake_lengths: float) -> list[Actor]:
-    """Cars behind the collider on its route, ``gap_m`` apart, back to the road's start.
+    """Cars behind the collider on its route, at its speed, back to the road's start.
 
-    The authors' code spawns a car at the collider's start whenever no car is within
-    ``gap_m`` of it; placed at t = 0 at the collider's speed, each is where that stream
-    puts it from the moment it would have been spawned on.
+    The authors' code spawns a car, at rest, at the collider's start whenever no car is
+    within ``gap_m`` of it, and drives it up to the collider's speed. Once at speed, each
+    car of that stream is ``gap_m + v^2 / 2a`` behind the one before (the distance it lost
+    accelerating at a car's ``max_accel_mps2``); we place the stream at that spacing at
+    t = 0, so each car is where the stream puts it from the moment it is up to speed.
     """
+    v = collider.speed_mps
+    spacing = gap_m + v * v / (2.0 * CAR.max_accel_mps2)
     s_col = project_s(full_route, collider.route[0])
     out = []
-    for k, s in enumerate(np.arange(s_col - gap_m, 0.0, -gap_m)):
-        out.append(Actor(first_vid + k, "traffic", "car", _trim(full_route, float(s)), collider.speed_mps,
-                         False, brake_lengths))
+    for k, s in enumerate(np.arange(s_col - spacing, 0.0, -spacing)):
+        out.append(Actor(first_vid + k, "traffic", "car", _trim(full_route, float(s)), v, False, brake_lengths))
     return out
 
 

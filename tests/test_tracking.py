@@ -146,5 +146,7 @@ def test_persisting_matches_a_brute_force_neighbour_search(seed):
     ov = np.floor((old + [dx, dy, 0.0]) / voxel)
     nv = np.floor(now / voxel)
     expected = (np.abs(ov[:, None, :] - nv[None, :, :]).max(axis=2) <= 1).any(axis=1).mean()
-    assert _persisting(old, now, dx, dy, voxel) == pytest.approx(expected)
-    assert _persisting(old[:0], now, dx, dy, voxel) == 0.0
+    shares = _persisting(old, now, np.array([[0.0, 0.0], [dx, dy]]), voxel)
+    unshifted = (np.abs(np.floor(old / voxel)[:, None, :] - nv[None, :, :]).max(axis=2) <= 1).any(axis=1).mean()
+    assert shares.tolist() == pytest.approx([unshifted, expected])
+    assert _persisting(old[:0], now, np.array([[dx, dy]]), voxel).tolist() == [0.0]

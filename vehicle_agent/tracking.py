@@ -46,8 +46,9 @@ EVIDENCE_SHIFT_M = 0.6  # the filter's shift over the lag tested: three voxels
 VOXEL_M = 0.2  # a point persists when the other frame has a point in its voxel or a neighbouring one
 EVIDENCE_MARGIN = 0.15  # moved, the old points persist in this larger share than unmoved...
 EVIDENCE_MIN_SHARE = 0.5  # ...and in at least this share
-_SEARCH = (-2, -1, 0, 1, 2)  # voxels around the filter's shift
+_OFFSETS = VOXEL_M * np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)  # around the filter's shift
 REGISTERED_SIGMA_MPS = 1.0  # a voxel over 0.2 s
+REGISTERED_POINTS = 400  # at most about this many old points are registered (every k-th)
 HISTORY = 10  # ticks of points kept per track: a mover at STILL_MPS shifts 1 m in 1 s
 
 
@@ -85,10 +86,13 @@ class Track:
 
 
 def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
-    """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration."""
-    f = np.array([[1.0, dt], [0.0, 1.0]])
-    q = ACCEL_SIGMA_MPS2**2 * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
-    return f @ cov @ f.T + q
+    """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration
+    (written out: the 2x2 products cost more in numpy calls than in arithmetic)."""
+    q = ACCEL_SIGMA_MPS2**2
+    p00, p01, p11 = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    a = p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4
+    b = p01 + dt * p11 + q * dt**3 / 2
+    return np.array([[a, b], [b, p11 + q * dt * dt]])
 
 
 @dataclass
@@ -169,27 +173,24 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
         age = t_sim_s - t_old
         if speed * age < EVIDENCE_SHIFT_M:
             continue
-        old = np.ascontiguousarray(old, dtype=np.float64)
-        best, shift = -1.0, np.zeros(2)
-        for a in _SEARCH:
-            for b in _SEARCH:
-                d = velocity * age + np.array([a, b]) * VOXEL_M
-                share = _persisting(old, now, d[0], d[1], VOXEL_M)
-                if share > best:
-                    best, shift = share, d
-        still = _persisting(old, now, 0.0, 0.0, VOXEL_M)
-        if best >= EVIDENCE_MIN_SHARE and best - still >= EVIDENCE_MARGIN:
-            return shift / age
+        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)], dtype=np.float64)
+        shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
+        shares = _persisting(old, now, shifts, VOXEL_M)
+        best = int(np.argmax(shares[1:])) + 1
+        if shares[best] >= EVIDENCE_MIN_SHARE and shares[best] - shares[0] >= EVIDENCE_MARGIN:
+            return shifts[best] / age
         return None
     return None
 
 
 @njit(cache=True)
-def _persisting(old, now, dx, dy, voxel):
-    """Share of the ``old`` points, shifted by (dx, dy), that have a point of ``now`` in
-    their voxel or a neighbouring one (3-D, edge ``voxel``)."""
+def _persisting(old, now, shifts, voxel):
+    """(S,) per shift (dx, dy): the share of the ``old`` points, shifted, that have a
+    point of ``now`` in their voxel or a neighbouring one (3-D, edge ``voxel``)."""
+    n_shift = shifts.shape[0]
+    out = np.zeros(n_shift)
     if old.shape[0] == 0 or now.shape[0] == 0:
-        return 0.0
+        return out
     lo = np.empty(3, dtype=np.int64)
     hi = np.empty(3, dtype=np.int64)
     for a in range(3):
@@ -205,14 +206,16 @@ def _persisting(old, now, dx, dy, voxel):
             for b in range(-1, 2):
                 for c in range(-1, 2):
                     occ[i + a, j + b, k + c] = True
-    hit = 0
-    for p in range(old.shape[0]):
-        i = np.int64(np.floor((old[p, 0] + dx) / voxel)) - lo[0]
-        j = np.int64(np.floor((old[p, 1] + dy) / voxel)) - lo[1]
-        k = np.int64(np.floor(old[p, 2] / voxel)) - lo[2]
-        if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and occ[i, j, k]:
-            hit += 1
-    return hit / old.shape[0]
+    for s in range(n_shift):
+        hit = 0
+        for p in range(old.shape[0]):
+            i = np.int64(np.floor((old[p, 0] + shifts[s, 0]) / voxel)) - lo[0]
+            j = np.int64(np.floor((old[p, 1] + shifts[s, 1]) / voxel)) - lo[1]
+            k = np.int64(np.floor(old[p, 2] / voxel)) - lo[2]
+            if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and occ[i, j, k]:
+                hit += 1
+        out[s] = hit / old.shape[0]
+    return out
 
 
 def associate(predicted: np.ndarray, variance: np.ndarray, measured: np.ndarray) -> list[tuple[int, int]]:

@@ -521,3 +521,24 @@ def test_the_drivable_raster_equals_testing_every_cell_against_every_polygon():
         got = DrivableRaster(polygons, 0.5).values
         want = reference(polygons, 0.5)
         assert got.any() and np.array_equal(got, want)
+
+
+def test_a_mover_on_a_lane_takes_the_lane_direction_and_keeps_its_speed():
+    from protocol.messages import Lane
+    from vehicle_agent.dataplane import LaneDirections
+    from vehicle_agent.tracking import Track
+
+    lanes = LaneDirections([Lane("W", np.array([[50.0, 2.0], [-50.0, 2.0]]), 4.0, 10.0, -1, -1.0)])
+    det = None
+
+    def track(xy, vel):
+        return Track(0, np.array(xy, float), np.array(vel, float), 0.0, det)
+
+    oncoming = track([10.0, 2.5], [-8.0, -0.4])  # 2.9 degrees off the lane: snapped, same speed
+    crossing = track([0.0, 2.0], [0.0, -8.0])  # across the lane: kept
+    elsewhere = track([0.0, 9.0], [-8.0, -0.4])  # off the lane: kept
+    parked = track([5.0, 2.0], [0.0, 0.0])
+    lanes.snap([oncoming, crossing, elsewhere, parked])
+    assert oncoming.velocity == pytest.approx([-np.hypot(8.0, 0.4), 0.0])
+    assert crossing.velocity.tolist() == [0.0, -8.0] and elsewhere.velocity.tolist() == [-8.0, -0.4]
+    assert parked.velocity.tolist() == [0.0, 0.0]

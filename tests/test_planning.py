@@ -187,3 +187,28 @@ def test_first_conflict_matches_the_dense_reference_on_random_traffic():
         assert got == want
         found += want is not None
     assert 40 < found < 190  # both answers are exercised
+
+
+def test_smoothing_keeps_clear_of_the_obstacle_margin_the_grid_path_avoided():
+    """A grid path that steps round a blocked block at a right angle: the moving average
+    would cut the corner into the block; the kept path does not touch a blocked cell."""
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _smooth, _smooth_clear
+
+    spec = GridSpec(half_extent_m=10.0)
+    n = spec.cells
+    grid = Grid(spec, -n // 2, -n // 2, np.zeros((n, n), np.uint8), np.ones((n, n), bool))
+    blocked = np.zeros((n, n), bool)
+    rows, cols = grid.cell_of(np.array([[0.25, 0.25]]))[0]
+    blocked[rows - 8:rows, cols:cols + 8] = True  # x in [0, 4), y in [-4, 0)
+    # north along the block's west side (cell centres x = -0.25), then east along its north side (y = 0.25)
+    path = np.vstack([np.column_stack([np.full(10, -0.25), np.arange(-4.75, 0.0, 0.5)]),
+                      np.column_stack([np.arange(-0.25, 4.5, 0.5), np.full(10, 0.25)])])
+    rc = grid.cell_of(_smooth(path))
+    assert blocked[rc[:, 0], rc[:, 1]].any()  # the plain average cuts into the block
+    kept = _smooth_clear(path, grid, blocked)
+    s = np.linspace(0.0, 1.0, 400)
+    seg = np.diff(kept, axis=0)
+    pts = (kept[:-1, None, :] + s[None, :, None] * seg[:, None, :]).reshape(-1, 2)
+    rc = grid.cell_of(pts)
+    assert not blocked[rc[:, 0], rc[:, 1]].any()

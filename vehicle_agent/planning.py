@@ -277,7 +277,7 @@ class PathPlanner:
             self.path = route_ahead  # no way through: the speed planner stops short of the block
         else:
             raw = _snap_to_route(grid.cell_centers(cells[:, 0], cells[:, 1]), self.route, grid.spec.cell_m)
-            self.path = _smooth(raw)
+            self.path = _smooth_clear(raw, grid, blocked)
             self.path[0] = [pose.x_m, pose.y_m]
         return self.path
 
@@ -306,6 +306,34 @@ def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.nda
     close = dist[np.arange(len(path)), best] <= cell_m * 0.75
     out = path.copy()
     out[close] = nearest[close]
+    return out
+
+
+def _smooth_clear(raw: np.ndarray, grid: Grid, blocked: np.ndarray) -> np.ndarray:
+    """``_smooth`` where the smoothed path keeps clear of ``blocked`` cells (sampled every
+    quarter cell); near a point where it does not, the raw (snapped) points are kept: a
+    moving average cuts the corner round a parked truck into the truck's margin, and the
+    speed planner would then stop for a block the path never had."""
+    out = _smooth(raw)
+    keep_raw = np.zeros(len(raw), dtype=bool)
+    n = blocked.shape[0]
+    for _ in range(8):
+        seg = np.diff(out, axis=0)
+        steps = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (grid.spec.cell_m / 4)), 1).astype(np.int64)
+        owner = np.repeat(np.arange(len(seg)), steps)
+        frac = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps, steps)
+        rc = grid.cell_of(out[owner] + frac[:, None] * seg[owner])
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+        hit = np.zeros(len(rc), dtype=bool)
+        hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
+        bad = np.zeros(len(out), dtype=bool)
+        bad[owner[hit]] = True
+        bad[owner[hit] + 1] = True
+        bad &= ~keep_raw
+        if not bad.any():
+            break
+        keep_raw |= np.convolve(bad, np.ones(5), mode="same") > 0  # the window the average mixed in
+        out = np.where(keep_raw[:, None], raw, _smooth(raw))
     return out
 
 

@@ -46,6 +46,7 @@ EVIDENCE_SHIFT_M = 0.6  # the filter's shift over the lag tested: three voxels
 VOXEL_M = 0.2  # a point persists when the other frame has a point in its voxel or a neighbouring one
 EVIDENCE_MARGIN = 0.15  # moved, the old points persist in this larger share than unmoved...
 EVIDENCE_MIN_SHARE = 0.5  # ...and in at least this share
+EVIDENCE_MIN_POINTS = 30  # of the old detection
 _OFFSETS = VOXEL_M * np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)  # around the filter's shift
 REGISTERED_SIGMA_MPS = 1.0  # a voxel over 0.2 s
 REGISTERED_POINTS = 400  # at most about this many old points are registered (every k-th)
@@ -173,6 +174,8 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
         age = t_sim_s - t_old
         if speed * age < EVIDENCE_SHIFT_M:
             continue
+        if len(old) < EVIDENCE_MIN_POINTS:  # too sparse (far away) to tell a change of view from a move
+            return None
         old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)], dtype=np.float64)
         shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
         shares = _persisting(old, now, shifts, VOXEL_M)

@@ -212,3 +212,13 @@ def test_smoothing_keeps_clear_of_the_obstacle_margin_the_grid_path_avoided():
     pts = (kept[:-1, None, :] + s[None, :, None] * seg[:, None, :]).reshape(-1, 2)
     rc = grid.cell_of(pts)
     assert not blocked[rc[:, 0], rc[:, 1]].any()
+
+
+def test_a_reused_path_is_measured_from_where_the_vehicle_is_now():
+    from vehicle_agent.planning import path_from
+
+    path = _straight(20.0)
+    rest = path_from(path, np.array([7.3, 0.4]))
+    assert rest[0].tolist() == [7.3, 0.4] and rest[1].tolist() == [7.5, 0.0]
+    assert arc_lengths(rest)[-1] == pytest.approx(np.hypot(0.2, 0.4) + 12.5)
+    assert path_from(path, np.array([25.0, 0.0])).tolist() == [[25.0, 0.0], [20.0, 0.0]]

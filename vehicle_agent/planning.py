@@ -214,6 +214,16 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
+def path_from(path: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself."""
+    if len(path) < 2:
+        return path
+    s = arc_lengths(path)
+    s0 = progress_along(path, xy)
+    rest = path[s > s0 + 1e-6]
+    return np.vstack([xy[None, :], rest]) if len(rest) else np.vstack([xy[None, :], path[-1:]])
+
+
 def path_until(path: np.ndarray, s: np.ndarray, s_end: float) -> np.ndarray:
     """``path`` (with arc lengths ``s``) cut at arc length ``s_end``; at least two points
     (a stub along the first segment when ``s_end`` is about 0)."""
@@ -543,7 +553,9 @@ class Planner:
             traj = trajectory_of(here, 0.0, 0.0, cfg.comfort_accel_mps2, t_now_s)
             return Plan(here, -spec.max_brake_mps2, traj, None, True)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
-        path = self.path_planner.plan(grid, static, pose, speed_mps)
+        # a reused path starts where the vehicle was when it was planned: distances and
+        # arrival times count from where the vehicle is now
+        path = path_from(self.path_planner.plan(grid, static, pose, speed_mps), np.array([pose.x_m, pose.y_m]))
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
         moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),

@@ -1,1 +1,17 @@
-"""Benchmarks: scripts that print figures (autocast bench NAME)."""
+"""Benchmarks: scripts that print figures (``autocast bench NAME [--quick]``).
+
+Every bench ends with one headline line, ``NAME: key=value key=value ...`` (medians).
+``HEADLINE_KEYS`` is what each prints: README.md documents these keys, and
+tests/test_benches.py runs every bench with ``--quick`` and checks them, so a bench
+that breaks or drops a key fails the suite instead of rotting.
+"""
+
+HEADLINE_KEYS: dict[str, tuple[str, ...]] = {
+    "lidar": ("scan_ms", "tick40_ms"),
+    "perception": ("dataplane_ms",),
+    "scheduler": ("greedy_vs_optimal", "agnostic_vs_greedy", "greedy40_ms", "fptas_over_greedy_time"),
+    "channel": ("disagreement_loss10_pct", "proxy40_ms"),
+    "pipeline": ("agent_ms", "plan_ms", "rtf5", "rtf10", "rtf20", "rtf40"),
+}
+# --quick keeps every key but the densities it skips: pipeline runs 5 and 10 vehicles only
+QUICK_KEYS: dict[str, tuple[str, ...]] = dict(HEADLINE_KEYS, pipeline=("agent_ms", "plan_ms", "rtf5", "rtf10"))

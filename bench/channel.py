@@ -40,6 +40,7 @@ from vehicle_agent.agreement import AgreementConfig, decide, plan
 
 VEHICLES = (20, 40)
 LOSSES_PCT = (0, 5, 10, 20, 30)
+QUICK_VEHICLES, QUICK_LOSSES_PCT = (40,), (0, 10)  # the headline's configuration and a lossless one
 OBJECTS_PER_VEHICLE = 30
 DOMAIN_RADIUS_M = 86.8  # R/2 plus the guard band
 T_D = 0.1
@@ -300,14 +301,18 @@ def summarize(ivs: list[Interval]) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="autocast bench channel", description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer intervals per configuration (well under a minute)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"{QUICK_VEHICLES[0]} vehicles at {' and '.join(map(str, QUICK_LOSSES_PCT))}%% loss, "
+                         "fewer intervals (well under a minute)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--vehicles", type=int, nargs="+", default=list(VEHICLES), help="fleet sizes (headline: the largest)")
-    ap.add_argument("--losses", type=int, nargs="+", default=list(LOSSES_PCT), metavar="PCT",
+    ap.add_argument("--vehicles", type=int, nargs="+", default=None, help="fleet sizes (headline: the largest)")
+    ap.add_argument("--losses", type=int, nargs="+", default=None, metavar="PCT",
                     help="control loss rates in %% (headline: the one nearest 10)")
     ap.add_argument("--intervals", type=int, default=None, help="intervals per configuration and rule")
     args = ap.parse_args(argv)
     intervals = args.intervals or (5 if args.quick else 20)
+    args.vehicles = args.vehicles or list(QUICK_VEHICLES if args.quick else VEHICLES)
+    args.losses = args.losses or list(QUICK_LOSSES_PCT if args.quick else LOSSES_PCT)
     logging.basicConfig(level=logging.WARNING)
     big = max(args.vehicles)
     loss_head = min(args.losses, key=lambda x: abs(x - 10))

@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         out = lidar.scan_many(boxes, poses, heights, cfg, vids)
         tick_ms.append((time.perf_counter() - t0) * 1e3)
-        n_points += [len(lbl) for _, lbl in out]
-        n_object_points += [int(np.count_nonzero(lbl >= 0)) for _, lbl in out]
+        n_points += [len(sweep.labels) for sweep in out]
+        n_object_points += [int(np.count_nonzero(sweep.labels >= 0)) for sweep in out]
         views = sim.sense(vids.tolist())  # untimed: drive on so the scene changes
         sim.step({v: ctl[v].run_step(views[v].pose, views[v].speed_mps, sim.scenario.actors[v].route,
                                      sim.scenario.actors[v].speed_mps) for v in views})

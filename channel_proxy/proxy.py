@@ -37,6 +37,7 @@ from channel_proxy import emp, loss, medium
 from channel_proxy.profiles import ChannelProfile
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
+from protocol.faults import Injector
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
                                EmpUpload, Outcome, Reception, Tick)
 from protocol.session import DropCounter, big_publisher
@@ -93,6 +94,7 @@ class ChannelProxy:
         self.cfg = config
         self.session = session
         self.drops = DropCounter()
+        self.faults = Injector("proxy")
         self.counters = Counters()
         self.last_stats: dict[str, Any] | None = None
         self._cv = threading.Condition()
@@ -223,6 +225,7 @@ class ChannelProxy:
                 tick, t_open = self._next_tick()
                 if tick is None:
                     break
+                self.faults.at(tick.tick)
                 if self.cfg.mode == "v2v":
                     self._play_v2v(tick, t_open)
                 else:

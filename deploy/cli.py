@@ -9,7 +9,9 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("lidar", "perception", "scheduler", "channel", "pipeline")
+from bench import HEADLINE_KEYS
+
+BENCHES = tuple(HEADLINE_KEYS)
 # command -> module whose ``main(argv) -> int`` runs it
 SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "deploy": "deploy.hosts"}
 

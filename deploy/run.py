@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import secrets
 import signal
 import socket
@@ -35,7 +36,7 @@ import zenoh
 
 from deploy import table
 from deploy.procs import ProcessManager, ProcSpec
-from protocol import keys
+from protocol import faults, keys
 from protocol.messages import Outcome, Scan
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
@@ -170,6 +171,10 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     if run_dir.exists():
         raise InputError(f"run_id: {run_dir} already exists")
     scheduler, profile = plug_ins_from(args, scheme)
+    try:
+        faults.parse(os.environ.get(faults.ENV, ""))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
                           agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
                           channel_profile=profile)
@@ -288,17 +293,19 @@ def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5) -> tuple[zenoh.Ses
 
 def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManager, timeout_s: float,
                         stop: threading.Event) -> bool:
-    """True once a subscriber matching the world's tick key is on the hub (only the recorder is up)."""
-    probe = session.declare_publisher(keys.world_tick(run_id))
+    """True once subscribers matching the world's tick and outcome keys are on the hub
+    (only the recorder is up): the first tick and the last word are both recorded."""
+    probes = [session.declare_publisher(key) for key in (keys.world_tick(run_id), keys.world_outcome(run_id))]
     try:
         deadline = time.monotonic() + timeout_s
-        while not probe.matching_status.matching:
+        while not all(p.matching_status.matching for p in probes):
             if stop.is_set() or time.monotonic() > deadline or table.RECORDER not in procs.running():
                 return False
             time.sleep(0.02)
         return True
     finally:
-        probe.undeclare()
+        for p in probes:
+            p.undeclare()
 
 
 # ---------------------------------------------------------------------------- the run
@@ -382,7 +389,7 @@ class Launcher:
         t0 = time.monotonic()
         if self._got_outcome.is_set() and not self.stop.is_set():
             self.procs.wait(names, SETTLE_S)
-        elif self.procs.running():  # interrupted or failed: the world judges what happened so far
+        elif self.procs.running():  # interrupted or failed: the world says where it stopped (nothing judged)
             self.procs.stop([table.WORLD], GRACE_S)
             self._got_outcome.wait(1.0)
         others = [n for n in names if n not in (table.WORLD, table.RECORDER)]
@@ -392,18 +399,24 @@ class Launcher:
         log.debug("all processes stopped %.1f s after the watch ended", time.monotonic() - t0)
 
     def _result(self, failure: str | None) -> RunResult:
-        interrupted = self.outcome_after_stop or (self.outcome is None and self.stop.is_set() and failure is None)
+        """Judged only if the world judged a scenario that played out on its own.
+
+        A run stopped by the wall-clock limit, by a process that died or by Ctrl-C is
+        failed (or interrupted) with its reason, whatever the world said on its way out:
+        stopped from outside, it publishes an outcome of ``None`` (nothing judged).
+        """
+        if self.stop.is_set() and (self.outcome is None or self.outcome_after_stop):
+            return RunResult(EXIT_INTERRUPTED, None, "interrupted before the scenario played out")
+        if failure is not None:
+            return RunResult(EXIT_FAILED, None, failure)
         if self.outcome is None:
-            if interrupted:
-                return RunResult(EXIT_INTERRUPTED, None, "interrupted before an outcome")
-            return RunResult(EXIT_FAILED, None, failure or "the world never published an outcome")
+            return RunResult(EXIT_FAILED, None, "the world never published an outcome")
         result = dict(self.outcome.result)
+        if result.get("outcome") is None:
+            return RunResult(EXIT_FAILED, None, result.get("failure") or "the world judged nothing")
         result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
                        "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None})
-        if interrupted:
-            result["interrupted"] = True
-            return RunResult(EXIT_INTERRUPTED, result)
-        return RunResult(EXIT_SAFE if result.get("outcome") == "safe" else EXIT_JUDGED, result)
+        return RunResult(EXIT_SAFE if result["outcome"] == "safe" else EXIT_JUDGED, result)
 
 
 def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
@@ -439,6 +452,17 @@ def main(argv: list[str] | None = None) -> int:
     return report(outcome, opts.run, args.json, time.monotonic() - t0)
 
 
+def json_ready(value: Any) -> Any:
+    """``value`` with every float JSON cannot carry (inf, NaN) as None, at any depth."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    return value
+
+
 def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -> int:
     """Print the outcome, write ``outcome.json``; return the exit code.
 
@@ -447,14 +471,17 @@ def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -
     """
     record = res.result
     if record is not None:
-        mark = ", interrupted" if record.get("interrupted") else ""
-        print(summary(record) + f"  [{cfg.scheme}, {wall_s:.1f} s total{mark}]")
+        print(summary(record) + f"  [{cfg.scheme}, {wall_s:.1f} s total]")
     else:
         record = {"outcome": None, "failure": res.failure, "scenario": cfg.params.scenario,
                   "vehicles": cfg.params.vehicles, "seed": cfg.params.seed, "scheme": cfg.scheme,
                   "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
                   "mcap": str(cfg.mcap_path) if cfg.mcap_path.exists() else None}
-        print(f"run failed: {res.failure}", file=sys.stderr)
+        if res.exit_code == EXIT_INTERRUPTED:
+            record["interrupted"] = True
+        print(f"run {'interrupted' if res.exit_code == EXIT_INTERRUPTED else 'failed'}: {res.failure}",
+              file=sys.stderr)
+    record = json_ready(record)
     if cfg.run_dir.is_dir():
         (cfg.run_dir / "outcome.json").write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
     if as_json:

@@ -7,11 +7,11 @@ import io
 import json
 import math
 import signal
-import time
 
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from deploy.recorder import JSON_PREFIX, McapLog, json_schema_of, peek_envelope, subscriptions, to_json
@@ -19,6 +19,7 @@ from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Command, Outcome, Pose, Scan, Tick
 from protocol.session import ZenohArgs, open_session
+from tests.conftest import wait_until
 
 RUN = "rec"
 
@@ -129,24 +130,28 @@ class Hub:
 
     def __init__(self, endpoint: str) -> None:
         self.session = open_session(ZenohArgs(listen=(endpoint,)))
-        self.probe = self.session.declare_publisher(keys.world_tick(RUN))
+        self.probes = [self.session.declare_publisher(k) for k in (keys.world_tick(RUN), keys.world_outcome(RUN))]
 
-    def wait_subscribed(self, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not self.probe.matching_status.matching:
-            assert time.monotonic() < deadline, "recorder never subscribed"
-            time.sleep(0.02)
+    def wait_subscribed(self) -> None:
+        wait_until(lambda: all(p.matching_status.matching for p in self.probes), "the recorder subscribed")
+
+    def put(self, key: str, payload: bytes) -> None:
+        # BLOCK, as the world publishes: with the default (DROP), a put behind a busy
+        # egress queue on a loaded machine was silently lost (an outcome the recorder
+        # never got, so it never finished)
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def publish_ticks(self, n: int) -> None:
         for k in range(n):
-            self.session.put(keys.world_tick(RUN), encode(Tick(k, k * 0.1, [0], [])))
-            self.session.put(keys.scan(RUN, 0), encode(scan(k)))
-            self.session.put(keys.scan(RUN, 1), encode(scan(k, vid=1)))
-            self.session.put(keys.cmd(RUN, 0), encode(Command(k, k * 0.1, 0, 1.0, 0.0)))
+            self.put(keys.world_tick(RUN), encode(Tick(k, k * 0.1, [0], [])))
+            self.put(keys.scan(RUN, 0), encode(scan(k)))
+            self.put(keys.scan(RUN, 1), encode(scan(k, vid=1)))
+            self.put(keys.cmd(RUN, 0), encode(Command(k, k * 0.1, 0, 1.0, 0.0)))
 
     def close(self) -> None:
         if not self.session.is_closed():
-            self.probe.undeclare()
+            for p in self.probes:
+                p.undeclare()
             self.session.close()
 
 
@@ -173,8 +178,8 @@ def topics_in(path) -> dict[str, int]:
 def test_the_outcome_ends_the_recording(recorder):
     p, h, path = recorder
     h.publish_ticks(5)
-    h.session.put(keys.world_outcome(RUN), encode(Outcome(5, 0.5, {"outcome": "safe"})))
-    assert p.wait(timeout=15) == 0
+    h.put(keys.world_outcome(RUN), encode(Outcome(5, 0.5, {"outcome": "safe"})))
+    assert p.wait(timeout=60) == 0
     assert topics_in(path) == {keys.world_tick(RUN): 5, keys.scan(RUN, 0): 5, keys.cmd(RUN, 0): 5,
                                keys.world_outcome(RUN): 1}  # vehicle 1's scan is not kept
 
@@ -183,27 +188,34 @@ def test_the_outcome_ends_the_recording(recorder):
 def test_the_recorder_process_writes_the_json_mirror(recorder):
     p, h, path = recorder
     h.publish_ticks(4)
-    h.session.put(keys.world_outcome(RUN), encode(Outcome(4, 0.4, {"outcome": "safe"})))
-    assert p.wait(timeout=15) == 0
+    h.put(keys.world_outcome(RUN), encode(Outcome(4, 0.4, {"outcome": "safe"})))
+    assert p.wait(timeout=60) == 0
     counts = topics_in(path)
     assert counts[JSON_PREFIX + keys.world_tick(RUN)] == counts[keys.world_tick(RUN)] == 4
     assert counts[JSON_PREFIX + keys.world_outcome(RUN)] == 1
 
 
+def recorded_ticks(path) -> list[int]:
+    _, msgs, _ = read(path.read_bytes())  # raises unless the file was finalized
+    return [decode(m.data, Tick).tick for topic, _, m in msgs if topic == keys.world_tick(RUN)]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_finalizes_the_file(recorder, sig):
+    """What had arrived when the signal came is in a finalized file, in order (how many
+    ticks had arrived depends on the machine, so the count is not the verdict)."""
     p, h, path = recorder
     h.publish_ticks(3)
-    time.sleep(0.5)
     p.send_signal(sig)
-    assert p.wait(timeout=15) == 0
-    assert topics_in(path)[keys.world_tick(RUN)] == 3
+    assert p.wait(timeout=60) == 0
+    ticks = recorded_ticks(path)
+    assert ticks == list(range(len(ticks))) and len(ticks) <= 3
 
 
 def test_losing_the_hub_finalizes_the_file(recorder):
     p, h, path = recorder
     h.publish_ticks(2)
-    time.sleep(0.5)
     h.close()
-    assert p.wait(timeout=20) == 0
-    assert topics_in(path)[keys.world_tick(RUN)] == 2
+    assert p.wait(timeout=60) == 0
+    ticks = recorded_ticks(path)
+    assert ticks == list(range(len(ticks))) and len(ticks) <= 2

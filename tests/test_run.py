@@ -26,11 +26,12 @@ UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap")  # differ 
 class Launch:
     """One ``python -m deploy.cli run`` process; reads its outputs once it has exited."""
 
-    def __init__(self, out: Path, run_id: str, *flags: str) -> None:
+    def __init__(self, out: Path, run_id: str, *flags: str, faults: str = "") -> None:
+        """``faults``: what fails, and at which tick, in this run (protocol/faults.py)."""
         self.run_id, self.run_dir = run_id, out / run_id
         self.proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "run", "--out", str(out), "--run-id", run_id,
                                       "--json", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True)
+                                     start_new_session=True, env=dict(os.environ, AUTOCAST_FAULTS=faults))
         self.stdout = self.stderr = ""
 
     def finish(self, timeout: float = 90) -> int:
@@ -79,8 +80,8 @@ def launches(tmp_path_factory):
     out = tmp_path_factory.mktemp("runs")
     started: list[Launch] = []
 
-    def start(name: str, *flags: str) -> Launch:
-        started.append(Launch(out, f"t{os.getpid()}-{name}", *flags))
+    def start(name: str, *flags: str, faults: str = "") -> Launch:
+        started.append(Launch(out, f"t{os.getpid()}-{name}", *flags, faults=faults))
         return started[-1]
 
     yield start
@@ -177,28 +178,28 @@ def test_the_mcap_holds_every_topic(scenario_runs):
 
 
 def test_a_killed_agent_still_ends_in_a_judged_outcome(launches):
-    launch = launches("kill", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single", "--realtime",
-                      "--duration", "8")
-    pid = launch.pids()["agent2"]
-    launch.wait_ticking()
-    time.sleep(1.0)
-    os.kill(pid, signal.SIGKILL)
+    """Agent 2 is SIGKILLed at tick 10: the world marks it dead (its liveliness token
+    drops), its vehicle brakes, and the run plays out to a judged outcome."""
+    launch = launches("kill", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single",
+                      faults="agent2:kill@10")
     assert launch.finish() in (0, 1), launch.stderr
     r = launch.result
-    assert r["outcome"] in OUTCOMES and r["mode"] == "realtime"
-    assert list(r["dead_agents"]) == ["2"]
+    assert r["outcome"] in OUTCOMES and r["mode"] == "lockstep" and r["ticks"] > 10
+    assert list(r["dead_agents"]) == ["2"] and "liveliness" in r["dead_agents"]["2"]
+    assert "fault injection: kill at tick 10" in (launch.run_dir / "logs" / "agent2.log").read_text()
     assert launch.leftovers() == []
 
 
 def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
-    launch = launches("sigint", "--scenario", "left_turn", "--vehicles", "5", "--scheme", "single", "--realtime",
-                      "--duration", "8")
+    """Agent 1 hangs at tick 5, so the run is still going whenever the SIGINT lands."""
+    launch = launches("sigint", "--scenario", "left_turn", "--vehicles", "3", "--scheme", "single",
+                      "--agent-timeout-s", "600", faults="agent1:hang@5")
     pids = launch.pids()
     launch.wait_ticking()
-    time.sleep(1.0)
     launch.proc.send_signal(signal.SIGINT)
-    assert launch.finish(timeout=30) == 130, launch.stderr
-    assert launch.result.get("interrupted") is True
+    assert launch.finish(timeout=60) == 130, launch.stderr
+    assert launch.result["interrupted"] is True and launch.result["outcome"] is None
+    assert "run interrupted" in launch.stderr
     with open(launch.run_dir / "run.mcap", "rb") as f:
         summary = make_reader(f).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
@@ -214,17 +215,44 @@ def runs_for(pid: int, run_id: str) -> bool:
         return False
 
 
-def test_the_world_dying_without_an_outcome_fails_the_run(launches):
-    launch = launches("noworld", "--scenario", "left_turn", "--vehicles", "3", "--scheme", "single", "--realtime",
-                      "--duration", "8")
-    world = launch.pids()["world"]
-    launch.wait_ticking()
-    os.kill(world, signal.SIGKILL)
-    assert launch.finish(timeout=30) == 3
-    assert launch.result["outcome"] is None and "world exited" in launch.result["failure"]
-    assert "run failed: world exited (code -9)" in launch.stderr
+def recorded_outcome(launch: Launch) -> dict | None:
+    """The outcome message in the run's MCAP (which must be finalized), or None."""
     with open(launch.run_dir / "run.mcap", "rb") as f:
-        assert make_reader(f).get_summary() is not None
+        reader = make_reader(f)
+        assert reader.get_summary() is not None  # finalized
+        f.seek(0)
+        found = [decode(m.data, Outcome).result for _, _, m in
+                 make_reader(f).iter_messages(topics=[keys.world_outcome(launch.run_id)])]
+    return found[0] if found else None
+
+
+@pytest.mark.parametrize("process, scheme", [("world", "single"), ("proxy", "autocast")])
+def test_a_critical_process_dying_fails_the_run(launches, process, scheme):
+    """The world or the channel proxy is SIGKILLed at tick 5: the run cannot be judged,
+    so it fails (exit 3) naming the process, the MCAP is finalized, nothing is left."""
+    launch = launches(f"no{process}", "--scenario", "left_turn", "--vehicles", "3", "--scheme", scheme,
+                      faults=f"{process}:kill@5")
+    assert launch.finish(timeout=120) == 3, launch.stderr
+    assert launch.result["outcome"] is None and f"{process} exited (code -9)" in launch.result["failure"]
+    assert f"run failed: {process} exited (code -9)" in launch.stderr
+    assert json.loads((launch.run_dir / "outcome.json").read_text()) == launch.result
+    outcome = recorded_outcome(launch)
+    assert outcome is None or outcome["outcome"] is None  # the world, stopped, judged nothing
+    assert launch.leftovers() == []
+
+
+def test_a_run_cut_short_by_the_wall_clock_limit_is_failed_not_judged(launches):
+    """Agent 1 hangs at tick 3 (and may take 600 s before it is declared dead), so only
+    the run's 2 s wall-clock limit ends it: the run is failed with that reason, never
+    judged a deadlock (tests/test_world_process.py: the world, stopped, judges nothing)."""
+    launch = launches("cut", "--scenario", "left_turn", "--vehicles", "2", "--scheme", "single",
+                      "--agent-timeout-s", "600", "--timeout-s", "2", faults="agent1:hang@3")
+    assert launch.finish(timeout=120) == 3, launch.stderr
+    r = launch.result
+    assert r["outcome"] is None and r["failure"] == "no outcome within 2 s of wall time"
+    assert "interrupted" not in r
+    outcome = recorded_outcome(launch)  # none if the limit came while the world was still starting
+    assert outcome is None or outcome["outcome"] is None
     assert launch.leftovers() == []
 
 

@@ -5,6 +5,7 @@ resume, a failed run, Ctrl-C."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -241,9 +242,10 @@ def test_report_of_an_empty_sweep_says_no_data(tmp_path):
 # ---------------------------------------------------------------------------- real sweeps
 
 
-def autocast(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def autocast(*args: str, timeout: float = 240, faults: str = "") -> subprocess.CompletedProcess:
+    """``autocast ARGS``; ``faults`` goes to every process of the runs (protocol/faults.py)."""
     return subprocess.run([sys.executable, "-m", "deploy.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, env=dict(os.environ, AUTOCAST_FAULTS=faults))
 
 
 def leftovers(run_ids) -> list[str]:
@@ -287,10 +289,12 @@ def test_smoke_sweep_resume_and_report(tmp_path):
 
 
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):
+    """The world hangs at tick 3, so the run cannot reach an outcome however fast the
+    machine is; the wall-clock limit only notices. The run is failed, never judged."""
     f = tmp_path / "fail.toml"
     f.write_text('preset = "smoke"\nschemes = ["single"]\nvehicles = [2]\ntimeout_s = 1\n')
     out = tmp_path / "fail"
-    res = autocast("sweep", "--file", str(f), "--out", str(out))
+    res = autocast("sweep", "--file", str(f), "--out", str(out), faults="world:hang@3")
     assert res.returncode == 1, res.stderr
     [r] = lines(out / "results.jsonl")
     assert r["status"] == "failed" and r["outcome"] is None and r["exit_code"] == 3

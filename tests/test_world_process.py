@@ -15,6 +15,7 @@ from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command, Scan, Tick
 from protocol.session import ZenohArgs, open_session
+from tests.conftest import wait_until
 
 RUN = "t"
 
@@ -93,7 +94,12 @@ def test_tick_round_trip_with_two_agent_processes(procs, hub, tap_on):
         agent(procs, hub, vid)
     result = outcome_of(w)
     assert result["ticks"] == 30 and result["dead_agents"] == {}
-    time.sleep(0.2)
+
+    def all_seen() -> bool:
+        with tap.lock:
+            return len(tap.ticks) >= 30 and len(tap.scans) >= 60 and len(tap.cmds) >= 60
+
+    wait_until(all_seen, "the tap saw every tick, scan and command")
     with tap.lock:
         assert tap.ticks == list(range(30))
         assert sorted(tap.scans) == [(k, v) for k in range(30) for v in (0, 1)]
@@ -106,15 +112,14 @@ def test_a_killed_agent_does_not_stall_the_world(procs, hub, tap_on):
     agents = [agent(procs, hub, vid) for vid in range(3)]
     tap.wait_tick(5)
     agents[2].kill()
-    t_kill = time.monotonic()
     result = outcome_of(w)
-    assert time.monotonic() - t_kill < 20
     assert result["outcome"] is not None and result["ticks"] == 40
+    # marked dead by its token, at once, not after the 10 s command timeout of a tick
     assert list(result["dead_agents"]) == ["2"] and "liveliness" in result["dead_agents"]["2"]
 
 
 def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
-    w = world(procs, hub, "--vehicles", "3", "--duration", "3", "--agent-timeout-s", "1.0")
+    w = world(procs, hub, "--vehicles", "3", "--duration", "3", "--agent-timeout-s", "3.0")
     tap = tap_on()
     agents = [agent(procs, hub, vid) for vid in range(3)]
     tap.wait_tick(3)
@@ -125,17 +130,30 @@ def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
 
 
 def test_malformed_messages_are_counted_and_dropped(procs, hub, tap_on):
+    """A stand-in for agent 0 sends garbage on its command key before its command for
+    tick 2: the world cannot finish before it has them, drops and counts each one."""
+    from protocol.codec import encode
+
     w = world(procs, hub, "--vehicles", "2", "--duration", "3")
+    agent(procs, hub, 1)
     tap = tap_on()
-    for vid in (0, 1):
-        agent(procs, hub, vid)
-    tap.wait_tick(2)
     garbage = [b"\xc1\xc1 not msgpack", msgpack.packb([5, 99, 0, 0.0, 0, 0.0, 0.0]),
                msgpack.packb([5, 1, "x", 0.0, 0, 0.0, 0.0])]
-    for payload in garbage:
-        tap.session.put(keys.cmd(RUN, 0), payload)
-        tap.session.put(keys.scan(RUN, 1), payload)  # the agent drops these too
-    result = outcome_of(w)
+
+    def on_scan(sample):
+        scan = decode(sample.payload.to_bytes(), Scan)
+        if scan.tick == 2:
+            for payload in garbage:
+                tap.session.put(keys.cmd(RUN, 0), payload)
+        tap.session.put(keys.cmd(RUN, 0), encode(Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0)))
+
+    sub = tap.session.declare_subscriber(keys.scan(RUN, 0), on_scan)
+    token = tap.session.liveliness().declare_token(keys.alive(RUN, 0))
+    try:
+        result = outcome_of(w)
+    finally:
+        sub.undeclare()
+        token.undeclare()
     assert result["malformed_dropped"] == len(garbage)
     assert result["ticks"] == 30 and result["dead_agents"] == {}
 
@@ -173,7 +191,7 @@ def test_realtime_mode_keeps_the_wall_clock(procs, hub, tap_on):
         agent(procs, hub, vid)
     result = outcome_of(w)
     assert result["mode"] == "realtime" and result["ticks"] == 20
-    assert 1.9 < result["wall_s"] < 3.0  # 20 ticks of 100 ms on the wall clock
+    assert result["wall_s"] >= 1.9  # 20 ticks of 100 ms on the wall clock, never early
     assert result["dead_agents"] == {}
 
 
@@ -217,3 +235,17 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
             entity.undeclare()
     assert result["ticks"] == 5 and result["dead_agents"] == {}
     assert 0 in sent and tick_seen[1] >= sent[0]  # tick 1 opened only after tick 0's report
+
+
+def test_a_world_stopped_mid_run_judges_nothing(procs, hub, tap_on):
+    """SIGINT before the scenario has played out: the outcome says where it stopped and
+    judges nothing (no deadlock for a run that was cut short), in valid JSON."""
+    w = world(procs, hub, "--vehicles", "2", "--duration", "60")
+    tap = tap_on()
+    for vid in (0, 1):
+        agent(procs, hub, vid)
+    tap.wait_tick(3)
+    w.send_signal(signal.SIGINT)
+    result = outcome_of(w)
+    assert result["outcome"] is None and result["stopped_at_tick"] >= 3
+    assert "before the scenario played out" in result["failure"]

@@ -21,6 +21,7 @@ from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
 from protocol import keys
 from protocol.codec import encode
+from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
@@ -120,6 +121,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     ]
     cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
     token = session.liveliness().declare_token(keys.alive(run, vid))
+    faults = Injector(f"agent{vid}")
     profile_dir = os.environ.get(PROFILE_ENV)
     profiler = cProfile.Profile(time.thread_time) if profile_dir else None  # CPU, not the waits
     last_scan = time.monotonic()
@@ -133,6 +135,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                     break
                 continue
             last_scan = time.monotonic()
+            faults.at(scan.tick)
             faulthandler.dump_traceback_later(STALL_DUMP_S)  # a stalled tick leaves its stack in the log
             try:
                 cmd = step.run(scan) if profiler is None else profiler.runcall(step.run, scan)

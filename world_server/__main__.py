@@ -66,8 +66,11 @@ def _file_fields(path: str) -> dict:
 
 
 def summary(result: dict) -> str:
-    react = result["reaction_time_s"]
-    return (f"outcome: {result['outcome']}  closest distance {result['closest_distance_m']:.2f} m  "
+    react, closest = result["reaction_time_s"], result["closest_distance_m"]
+    if result["outcome"] is None:
+        return f"not judged: {result.get('failure')}  [{result['scenario']}, {result['vehicles']} vehicles, " \
+               f"seed {result['seed']}, {result['ticks']} ticks]"
+    return (f"outcome: {result['outcome']}  closest distance {'n/a' if closest is None else f'{closest:.2f} m'}  "
             f"reaction time {'n/a' if react is None else f'{react:.2f} s'}  "
             f"collider in the ego's {'fused' if result['visibility_source'] == 'fused' else 'own'} view "
             f"{100 * result['collider_visible_share']:.0f}% of ticks ({result['collider_points_mean']:.0f} points mean)  "

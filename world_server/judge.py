@@ -153,7 +153,7 @@ class Judge:
         own_share = self._visible_ticks / max(self._ticks, 1)
         return {
             "outcome": self.verdict,
-            "closest_distance_m": round(self.closest_m, 3),
+            "closest_distance_m": round(self.closest_m, 3) if math.isfinite(self.closest_m) else None,  # None: no step
             "closest_t_s": round(self.closest_t_s, 3),
             "reaction_time_s": reaction,
             "collider_visible_share": round(float((fused >= AWARE_MIN_POINTS).mean()), 4) if fused is not None

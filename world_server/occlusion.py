@@ -38,6 +38,7 @@ from world_server.scenarios import SCENARIOS, Scenario, ScenarioParams, build
 
 DT_S = 0.1  # the decision interval: one scan per vehicle per interval
 ENTRY_STEP_M = 0.05  # resolution of the entry point along the ego's route
+AUTHORS_LIDAR = LidarConfig(range_m=50.0, fov_up_deg=4.0, fov_down_deg=-20.0)  # for comparison only
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,14 +166,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--deltas", default="0", metavar="S,...")
     ap.add_argument("--vehicles", type=int, default=2, help="connected vehicles (2: the ego and the occluder)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lidar", choices=("world", "authors"), default="world",
+                    help="the world's LiDAR (default) or the authors' (50 m range, +4 to -20 degrees)")
     args = ap.parse_args(argv)
+    cfg = LidarConfig() if args.lidar == "world" else AUTHORS_LIDAR
     rows = []
     for name in args.scenarios.split(","):
         for kmh in (float(x) for x in args.collider_speeds.split(",")):
             for delta in (float(x) for x in args.deltas.split(",")):
                 p = ScenarioParams(scenario=name, vehicles=args.vehicles, collider_speed_kmh=kmh, delta_s=delta,
                                    seed=args.seed)
-                rows.append(first_sights(p))
+                rows.append(first_sights(p, cfg))
     sys.stdout.write(table(rows) + "\n")
     return 0
 

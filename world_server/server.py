@@ -23,6 +23,7 @@ import zenoh
 
 from protocol import keys
 from protocol.codec import encode
+from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
 from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
 from world_server.sim import Simulation
@@ -42,6 +43,7 @@ class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
                  agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False) -> None:
         self.sim = sim
+        self.faults = Injector("world")
         self.session = session
         self.run_id = run_id
         self.realtime = realtime
@@ -146,9 +148,10 @@ class WorldServer:
             while not self.sim.done and not self._stopping.is_set():
                 self._one_tick(t0)
             self.stats.wall_s = time.monotonic() - t0
-            if not self.sim.done:  # stopped from outside: judge what happened so far
-                self.sim.judge.time_out(self.sim.t_sim_s)
             result = self._result()
+            if not self.sim.done:  # stopped from outside: the scenario did not play out, nothing is judged
+                result.update(outcome=None, stopped_at_tick=self.sim.tick,
+                              failure=f"the world was stopped at tick {self.sim.tick}, before the scenario played out")
             self.session.put(keys.world_outcome(self.run_id), encode(Outcome(self.sim.tick, self.sim.t_sim_s, result)),
                              congestion_control=zenoh.CongestionControl.BLOCK)
             return result
@@ -171,6 +174,7 @@ class WorldServer:
     def _one_tick(self, t0: float) -> None:
         sim = self.sim
         k = sim.tick
+        self.faults.at(k)
         with self._cv:
             live = sorted(self._live)
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))

@@ -1,0 +1,67 @@
+"""Deterministic fault injection: a process of a run dies or hangs at a tick it is told.
+
+``AUTOCAST_FAULTS="world:kill@20,agent2:hang@5"`` (in the environment of ``autocast
+run``, which its processes inherit) makes the world SIGKILL itself when it is about to
+play tick 20 and agent 2 stop answering from its scan of tick 5 on. A fault is tied
+to a tick, not to the wall clock, so a test or a resilience experiment causes the same
+failure at the same point of the run on a fast machine and on a loaded one.
+
+Actions:
+- ``kill``: SIGKILL itself (no clean-up, no outcome, no goodbye: a crashed process);
+- ``hang``: block that thread forever (a process that is alive and silent).
+
+Processes name themselves as the launcher's table does: ``world``, ``proxy``,
+``agent<vid>``. A bad specification is an error at start-up, naming the entry.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
+
+ENV = "AUTOCAST_FAULTS"
+ACTIONS = ("kill", "hang")
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    process: str
+    action: str
+    tick: int
+
+
+def parse(spec: str) -> list[Fault]:
+    """``"world:kill@20,agent2:hang@5"`` -> faults; raises ValueError naming the bad entry."""
+    faults = []
+    for entry in filter(None, (e.strip() for e in spec.split(","))):
+        process, sep, rest = entry.partition(":")
+        action, at, tick = rest.partition("@")
+        if not (sep and at and process) or action not in ACTIONS or not tick.isdigit():
+            raise ValueError(f"{ENV}: {entry!r} is not <process>:<{'|'.join(ACTIONS)}>@<tick>")
+        faults.append(Fault(process, action, int(tick)))
+    return faults
+
+
+class Injector:
+    """A process's own faults; ``at(tick)`` is called where the process starts a tick."""
+
+    def __init__(self, process: str, spec: str | None = None) -> None:
+        spec = os.environ.get(ENV, "") if spec is None else spec
+        self.faults = [f for f in parse(spec) if f.process == process]
+        if self.faults:
+            log.warning("fault injection: %s", ", ".join(f"{f.action} at tick {f.tick}" for f in self.faults))
+
+    def at(self, tick: int) -> None:
+        for f in self.faults:
+            if tick >= f.tick:
+                log.warning("fault injection: %s at tick %d", f.action, tick)
+                for handler in logging.getLogger().handlers:  # the line reaches the log before we go
+                    handler.flush()
+                if f.action == "kill":
+                    os.kill(os.getpid(), signal.SIGKILL)
+                threading.Event().wait()  # hang

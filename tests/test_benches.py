@@ -1,0 +1,47 @@
+"""Every bench runs as a user runs it (``autocast bench NAME --quick``), exits 0 and ends
+with its headline line carrying every documented key with a number."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench import HEADLINE_KEYS, QUICK_KEYS
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def headline(name: str, stdout: str) -> dict[str, float]:
+    last = stdout.strip().splitlines()[-1]
+    prefix = f"{name}: "
+    assert last.startswith(prefix), last
+    pairs = [item.partition("=") for item in last.removeprefix(prefix).split()]
+    assert all(sep == "=" for _, sep, _ in pairs), last
+    return {key: float(value) for key, _, value in pairs}
+
+
+@pytest.mark.parametrize("name", list(HEADLINE_KEYS))
+def test_each_bench_prints_its_headline_in_quick_mode(name, tmp_path):
+    res = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", name, "--quick"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    figures = headline(name, res.stdout)
+    assert tuple(figures) == QUICK_KEYS[name]
+    assert all(math.isfinite(v) and v >= 0.0 for v in figures.values()), figures
+    if name == "scheduler":
+        assert 0.0 < figures["greedy_vs_optimal"] <= 1.0 and 0.0 < figures["agnostic_vs_greedy"] <= 1.0
+        assert (tmp_path / "runs" / "bench_scheduler" / "scheduler.png").stat().st_size > 10_000
+    if name == "pipeline":
+        assert figures["rtf5"] > 0.0 and figures["agent_ms"] > 0.0
+
+
+def test_the_readme_documents_every_headline_key():
+    documented = dict(re.findall(r"`(\w+): ((?:\w+=\.\.\. ?)+)`", README.read_text()))
+    assert set(documented) == set(HEADLINE_KEYS)
+    for name, keys in HEADLINE_KEYS.items():
+        assert tuple(k.removesuffix("=...") for k in documented[name].split()) == keys, name

@@ -157,8 +157,13 @@ def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
     zone = near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h,
                 cfg.wait_clear_m).any(axis=1)
     zone = zone[:, conflicting]
-    zone[s < 0.5] = False
     first = zone.any(axis=1)
+    if first[0]:  # inside a zone: out of it unless the conflict falls before
+        leave = next((i for i in range(len(first)) if not first[i]), len(first))
+        if timed[:leave, conflicting].any():
+            return float(s[min(1, len(s) - 1)])
+        first[:leave] = False
+    first[s < 0.5] = False
     return float(s[np.argmax(first)]) if first.any() else None
 
 
@@ -222,3 +227,24 @@ def test_a_reused_path_is_measured_from_where_the_vehicle_is_now():
     assert rest[0].tolist() == [7.3, 0.4] and rest[1].tolist() == [7.5, 0.0]
     assert arc_lengths(rest)[-1] == pytest.approx(np.hypot(0.2, 0.4) + 12.5)
     assert path_from(path, np.array([25.0, 0.0])).tolist() == [[25.0, 0.0], [20.0, 0.0]]
+
+
+def test_an_ego_already_out_in_the_oncoming_lane_drives_on_unless_the_car_is_upon_it():
+    """The pass of ``_overtaking_path`` seen from x = 16, out in the oncoming lane (y = +2)
+    until x = 30, back in its lane (y = -2) from x = 34. A car coming west along y = +2
+    at 8 m/s from x = 102: the ego, at 6 m/s, is back in its lane at x = 50 at 5.94 s
+    (s = 14 + 4 sqrt(2) + 16), when the car is at 54.5 m, 3.1 m across (< 0.9 + 2.3):
+    a conflict, but outside the zone it waits out of (0.9 + 2.0). On the pass (until
+    3.3 s, +1.5 s) the car is beyond x = 63: drive on, nothing to stop for. From x = 70
+    the car is at x = 31.8 at 3.28 + 1.5 s, on the ramp back: upon the ego while it is
+    still out there, stop at once (the first waypoint, 0.5 m)."""
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
+
+    spec, cfg = VehicleSpec(**SPEC), PlannerConfig(horizon_s=30.0)
+    path = _overtaking_path()[32:]  # from x = 16
+    t_path = arc_lengths(path) / 6.0
+    far = Obstacle(np.array([102.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    near = Obstacle(np.array([70.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    assert first_conflict(path, t_path, spec, [far], 0.0, cfg) is None
+    assert first_conflict(path, t_path, spec, [near], 0.0, cfg) == pytest.approx(0.5)

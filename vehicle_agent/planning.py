@@ -459,7 +459,9 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     in the lane the vehicle would pull into to pass a parked truck, it is where the
     vehicle would leave its own lane, so it waits behind the truck until the oncoming
     lane is clear for the whole manoeuvre. A conflict with no such waypoint (a car
-    passing in the next lane) needs no stop.
+    passing in the next lane) needs no stop. A vehicle already inside a zone (it
+    learnt of the car only once out in its lane) drives on out of it unless the
+    conflict itself falls before it is out: stopping there would wait in the car's way.
     """
     if not obstacles or len(path) < 2:
         return None
@@ -486,8 +488,17 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)[None, :]  # the same times at every waypoint
     zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
                  radius + cfg.wait_clear_m)  # (M, O')
-    zone[s < 0.5] = False
     first = zone.any(axis=1)
+    if first[0]:
+        # already inside the zone (out in the oncoming lane when the car came into view):
+        # stopping here waits in its way. Drive on out of this stretch of the zone unless
+        # the conflict falls inside it: then there is no clearing it, stop.
+        ahead = np.flatnonzero(~first)
+        leave = int(ahead[0]) if len(ahead) else len(first)
+        if timed[:leave, conflicting].any():
+            return float(s[min(1, len(s) - 1)])
+        first[:leave] = False
+    first[s < 0.5] = False
     return float(s[np.argmax(first)]) if first.any() else None
 
 

@@ -334,6 +334,20 @@ def test_not_me_drops_what_others_saw_of_us_where_we_are_and_were():
     np.testing.assert_array_equal(out[0].points_world, car)
 
 
+def test_not_me_drops_our_ghost_that_a_sender_extrapolated_past_us():
+    """A sender captured us 1 s ago at (-1, 0), tracked at 6 m/s east; we braked and are
+    at (0, 0). Placed now its points are 5 m ahead, clear of our body (|dx| <= 2.75),
+    but where it captured them they are on our body as we were: dropped. A car
+    captured 1 s ago 10 m ahead of that, at the same velocity, stays."""
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me
+
+    body = np.array([[-2.0, 0.5, 1.0], [0.0, -0.8, 1.0], [2.0, 0.0, 1.0]])
+    ghost = SharedObject((1, 0), body + [5.0, 0.0, 0.0], np.array([6.0, 0.0]), 1.0, False)  # x 3, 5, 7
+    car = SharedObject((1, 1), body + [15.0, 0.0, 0.0], np.array([6.0, 0.0]), 1.0, False)
+    out = not_me(SharedBatch.of([ghost, car]), [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8).objects()
+    assert [o.key for o in out] == [(1, 1)]
+
+
 def test_not_me_matches_testing_every_point_against_every_pose():
     from vehicle_agent.fusion import SharedBatch, SharedObject, not_me, on_body
 

@@ -348,6 +348,20 @@ def test_not_me_drops_our_ghost_that_a_sender_extrapolated_past_us():
     assert [o.key for o in out] == [(1, 1)]
 
 
+def test_not_me_stills_an_object_that_merged_us_with_a_parked_truck():
+    """A sender saw us pass a parked truck as one object moving at our speed (6 m/s east),
+    captured 0.5 s ago. One point in ten is ours: it goes, and the truck's points stand
+    where they were captured, not moved 3 m on, with no velocity."""
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me
+
+    truck = np.column_stack([np.linspace(8.0, 12.0, 9), np.full(9, -2.0), np.full(9, 1.5)])
+    placed = np.vstack([[[0.0, 0.0, 1.0]], truck + [3.0, 0.0, 0.0]])  # as the receiver placed them
+    obj = SharedObject((3, 10), placed, np.array([6.0, 0.0]), 0.5, True)
+    (out,) = not_me(SharedBatch.of([obj]), [Pose(0.0, 0.0, 0.0)], 4.5, 1.8).objects()
+    np.testing.assert_allclose(out.points_world, truck)
+    assert out.velocity_xy.tolist() == [0.0, 0.0]
+
+
 def test_not_me_matches_testing_every_point_against_every_pose():
     from vehicle_agent.fusion import SharedBatch, SharedObject, not_me, on_body
 

@@ -21,6 +21,7 @@ from vehicle_agent.perception import ABOVE, GROUND, Grid
 
 MAX_AGE_S = 1.0
 SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
+MERGED_SHARE = 0.05  # ... with this share, it merged us with something else: its velocity is ours
 BODY_MARGIN_M = 0.5  # a point this close to our body's box is on it
 
 ObjectKey = tuple[int, int]  # (sender vid, object id)
@@ -183,6 +184,16 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
         for xy in (pts[:, :2], captured):
             mine |= _on_bodies(xy, poses, length_m, width_m)
     share = np.bincount(shared.owner, weights=mine, minlength=len(shared)) / np.maximum(counts, 1)
+    merged = (share >= MERGED_SHARE) & (share < SELF_SHARE)
+    if merged.any():
+        # merged with us: its motion is ours, the rest of it is taken as standing where it
+        # was captured (measured: a parked car's view merged the truck with the passing
+        # ego; the truck, "moving" at the ego's speed, blocked the ego's way back)
+        back = np.repeat(np.where(merged[:, None], shared.velocity * shared.age_s[:, None], 0.0), counts, axis=0)
+        points = pts.copy()
+        points[:, :2] -= back
+        shared = SharedBatch(shared.keys, points, counts, np.where(merged[:, None], 0.0, shared.velocity),
+                             shared.age_s, shared.fresh)
     return shared.keep((counts > 0) & (share < SELF_SHARE), ~mine)
 
 

@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = dataclasses.asdict(counters)
     summary["malformed_dropped"] = proxy.drops.total
     log.info("proxy done: %s", json.dumps(summary))
+    print(proxy.drops.exit_line("proxy"), file=sys.stderr, flush=True)
     return 0
 
 

@@ -9,6 +9,7 @@ then stops children in order instead of all of them at once.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -109,6 +110,22 @@ class ProcessManager:
 
     def __exit__(self, *exc) -> None:
         self.stop_all()
+
+
+def exit_records(log_dir: Path, tag: str) -> dict[str, dict]:
+    """``{process: record}`` from the last ``<tag> {json}`` line of each ``<name>.log``
+    (e.g. the ``malformed_dropped`` line every process prints as it exits); a process
+    without one (it did not exit normally, or runs on another host) is left out."""
+    out: dict[str, dict] = {}
+    prefix = tag + " "
+    for path in sorted(log_dir.glob("*.log")) if log_dir.is_dir() else []:
+        for line in path.read_text(errors="replace").splitlines():
+            if line.startswith(prefix):
+                try:
+                    out[path.stem] = json.loads(line[len(prefix):])
+                except ValueError:
+                    log.warning("%s: unreadable %s line", path, tag)
+    return out
 
 
 def _signal(proc: subprocess.Popen, sig: int) -> None:

@@ -49,7 +49,7 @@ from mcap.writer import CompressionType, Writer
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, message_class
 from protocol import messages
-from protocol.messages import Tick
+from protocol.messages import Outcome, Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 
 log = logging.getLogger("deploy.recorder")
@@ -60,6 +60,7 @@ METADATA_NAME = "autocast"
 STATS_NAME = "autocast.recorder"
 SCAN_CHOICES = ("ego", "all", "none")
 EGO_VID = 0
+MAX_PUBLISH_S = 1.8e10  # below 2^64 ns
 
 JSON_PREFIX = "json/"  # a mirror's topic is JSON_PREFIX + the key
 JSON_ENCODING = "json"
@@ -111,6 +112,16 @@ def peek_envelope(payload: bytes) -> Envelope | None:
     if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
         return None
     return Envelope(cls, tick, float(t_sim_s))
+
+
+def _is_a(payload: bytes, cls: type) -> bool:
+    """A whole, valid ``cls`` (a valid envelope alone is not enough: anybody can put
+    garbage on the outcome key). Only for small messages: ticks and the outcome."""
+    try:
+        decode(payload, cls)
+    except MalformedMessage:
+        return False
+    return True
 
 
 def schema_of(cls: type) -> bytes:
@@ -288,7 +299,9 @@ class McapLog:
             if self.stats.malformed == 1 or self.stats.malformed % 100 == 0:
                 log.warning("malformed payload #%d on %s (recorded raw)", self.stats.malformed, key)
         channel = self._channel(key, env.cls if env else None)
-        publish_ns = int(round(env.t_sim_s * 1e9)) if env and env.t_sim_s >= 0 else log_time_ns
+        # MCAP's publish time is a uint64 of ns: a t_sim_s it cannot hold (negative, inf,
+        # NaN or ~585 years and more: anybody can publish garbage) falls back to log time
+        publish_ns = int(round(env.t_sim_s * 1e9)) if env and 0 <= env.t_sim_s < MAX_PUBLISH_S else log_time_ns
         seq = self.stats.per_topic.get(key, 0)
         self.writer.add_message(channel, log_time=log_time_ns, data=payload, publish_time=publish_ns, sequence=seq)
         self.stats.per_topic[key] = seq + 1
@@ -361,10 +374,10 @@ class Recorder:
         key = str(sample.key_expr)
         payload = sample.payload.to_bytes()
         self._inbox.put((key, payload, time.time_ns()))
-        with self._lock:
-            if key == self._outcome_key and self._outcome_at is None:
+        with self._lock:  # only a real outcome or tick counts: anybody can put garbage on their keys
+            if key == self._outcome_key and self._outcome_at is None and _is_a(payload, Outcome):
                 self._outcome_at = time.monotonic()
-            if key == self._tick_key and self._first_tick is None:
+            if key == self._tick_key and self._first_tick is None and _is_a(payload, Tick):
                 self._first_tick = payload
 
     def run(self, out: McapLog) -> None:

@@ -35,10 +35,10 @@ from typing import Any, NoReturn
 import zenoh
 
 from deploy import table
-from deploy.procs import ProcessManager, ProcSpec
+from deploy.procs import ProcessManager, ProcSpec, exit_records
 from protocol import faults, keys
 from protocol.messages import Outcome, Scan
-from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
+from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
 from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
 
@@ -415,7 +415,9 @@ class Launcher:
         if result.get("outcome") is None:
             return RunResult(EXIT_FAILED, None, result.get("failure") or "the world judged nothing")
         result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
-                       "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None})
+                       "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None,
+                       "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line
+                                     for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()}})
         return RunResult(EXIT_SAFE if result["outcome"] == "safe" else EXIT_JUDGED, result)
 
 

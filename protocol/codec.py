@@ -6,6 +6,14 @@ with the bytes packed from a ``memoryview`` (no ``tobytes`` copy, no ``tolist``)
 nested dataclasses travel as plain arrays of their fields. Decoding checks the type,
 the version, the field count and every field's type, and raises ``MalformedMessage``
 on any mismatch, so a receiver can count and drop a bad payload without crashing.
+
+Hostile input allocates no more than the bytes it brings: msgpack refuses a container
+or byte string whose declared length exceeds the payload, an array's declared shape
+must be filled by the bytes present before anything is built from them, nesting
+deeper than msgpack's stack (1024 levels) is refused, and a free-form (``Any``) value
+may hold only msgpack's plain types, at most ``MAX_ANY_DEPTH`` levels deep. The
+remaining cost is msgpack's: a payload of n bytes builds at most ~80 n bytes of
+Python objects (one empty list per byte; ``autocast bench fuzz`` measures it).
 """
 
 from __future__ import annotations
@@ -27,6 +35,9 @@ class MalformedMessage(ValueError):
 # dtypes an array field may carry on the wire; anything else is refused on decode.
 _WIRE_DTYPES = frozenset(["<f4", "<f8", "<i2", "<i4", "<i8", "|u1", "|i1", "<u2", "<u4", "|b1"])
 _DTYPE_OF = {name: np.dtype(name) for name in _WIRE_DTYPES}
+MAX_ARRAY_DIMS = 8  # no field has more than 2; numpy's own limit is 64
+MAX_ANY_DEPTH = 16  # containers within a free-form value (an outcome, channel statistics)
+_PLAIN = (type(None), bool, int, float, str, bytes)
 
 _REGISTRY: dict[int, type] = {}
 _HINTS: dict[type, list[tuple[str, Any]]] = {}
@@ -149,8 +160,20 @@ def _build_converter(hint: Any) -> Converter:
         return lambda value: value if isinstance(value, hint) else _bad(
             f"expected {hint.__name__}, got {type(value).__name__}")
     if hint is Any:
-        return lambda value: value
+        return _plain
     raise TypeError(f"unsupported field type {hint!r}")
+
+
+def _brief(value: Any) -> str:
+    """A hostile value in an error message: its repr only if it is flat (a repr of a
+    list nested 1,000 deep raises RecursionError), and cut short."""
+    if type(value) is list and all(isinstance(v, _PLAIN) for v in value[:MAX_ARRAY_DIMS + 1]):
+        text = repr(value[:MAX_ARRAY_DIMS + 1])
+    elif isinstance(value, _PLAIN):
+        text = repr(value)
+    else:
+        text = f"a {type(value).__name__}"
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _bad(text: str) -> typing.NoReturn:
@@ -167,6 +190,27 @@ def _integer(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         _bad(f"expected an int, got {type(value).__name__}")
     return value
+
+
+def _plain(value: Any) -> Any:
+    """A free-form value: msgpack's plain types only (no extension types such as its
+    Timestamp), map keys str or int, at most ``MAX_ANY_DEPTH`` containers deep."""
+    level = [value]
+    for _ in range(MAX_ANY_DEPTH + 1):
+        inner = []
+        for v in level:
+            if type(v) is list:
+                inner.extend(v)
+            elif type(v) is dict:
+                if not all(type(k) in (str, int) for k in v):
+                    _bad("map keys must be str or int")
+                inner.extend(v.values())
+            elif not isinstance(v, _PLAIN):
+                _bad(f"{type(v).__name__} is not a plain value")
+        if not inner:
+            return value
+        level = inner
+    _bad(f"nested deeper than {MAX_ANY_DEPTH}")
 
 
 def _items(value: Any, convs: list[Converter] | None) -> list:
@@ -224,15 +268,15 @@ def _array_from_wire(value: Any) -> np.ndarray:
     dtype_str, shape, raw = value
     dtype = _DTYPE_OF.get(dtype_str) if type(dtype_str) is str else None
     if dtype is None or type(raw) is not bytes:
-        _bad(f"bad array dtype {dtype_str!r}")
-    if type(shape) is not list:
-        _bad(f"bad array shape {shape!r}")
+        _bad(f"bad array dtype {_brief(dtype_str)}")
+    if type(shape) is not list or len(shape) > MAX_ARRAY_DIMS:
+        _bad(f"bad array shape {_brief(shape)}")
     count = 1
     for d in shape:  # a loop, not all(<genexpr>): a control bundle decodes ~300 arrays
         if type(d) is not int or d < 0:
-            _bad(f"bad array shape {shape!r}")
+            _bad(f"bad array shape {_brief(shape)}")
         count *= d
-    if count * dtype.itemsize != len(raw):
+    if count * dtype.itemsize != len(raw):  # checked before anything is built from the bytes
         _bad(f"{len(raw)} bytes do not fill shape {shape} of {dtype}")
     flat = np.frombuffer(raw, dtype=dtype)
     return flat if len(shape) == 1 else flat.reshape(shape)
@@ -247,17 +291,17 @@ def decode(payload: bytes | bytearray | memoryview, expected: type | None = None
     try:
         body = msgpack.unpackb(payload, raw=False, use_list=True, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated exception types
-        raise MalformedMessage(f"not msgpack: {exc}") from None
+        raise MalformedMessage(f"not msgpack: {type(exc).__name__} {exc}") from None
     if not isinstance(body, list) or len(body) < 2:
         raise MalformedMessage("not a message envelope")
     type_id, version = body[0], body[1]
-    cls = _REGISTRY.get(type_id) if isinstance(type_id, int) else None
+    cls = _REGISTRY.get(type_id) if type(type_id) is int else None  # not isinstance: True is no type id
     if cls is None:
-        raise MalformedMessage(f"unknown message type {type_id!r}")
+        raise MalformedMessage(f"unknown message type {_brief(type_id)}")
     if expected is not None and cls is not expected:
         raise MalformedMessage(f"expected {expected.__name__}, got {cls.__name__}")
-    if version != cls.VERSION:
-        raise MalformedMessage(f"{cls.__name__} version {version!r}, this build speaks {cls.VERSION}")
+    if type(version) is not int or version != cls.VERSION:
+        raise MalformedMessage(f"{cls.__name__} version {_brief(version)}, this build speaks {cls.VERSION}")
     try:
         return _converter(cls)(body[2:])
     except _FieldError as err:

@@ -144,6 +144,9 @@ def put(session: zenoh.Session, key: str, msg: Any) -> None:
     session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
 
 
+MALFORMED_LINE = "malformed_dropped"  # the tag of a process's exit line (DropCounter.exit_line)
+
+
 @dataclass
 class DropCounter:
     """Counts payloads that failed to decode, per key, and logs the first of each."""
@@ -155,6 +158,17 @@ class DropCounter:
     def total(self) -> int:
         with self._lock:
             return sum(self.counts.values())
+
+    def by_key(self) -> dict[str, int]:
+        with self._lock:
+            return dict(sorted(self.counts.items()))
+
+    def exit_line(self, process: str) -> str:
+        """What a process prints (stderr, so its log) as it exits:
+        ``malformed_dropped {"process": ..., "total": n, "by_key": {key: n}}``; the
+        launcher gathers these lines into the outcome record (``deploy.procs.exit_records``)."""
+        by_key = self.by_key()
+        return f"{MALFORMED_LINE} " + json.dumps({"process": process, "total": sum(by_key.values()), "by_key": by_key})
 
     def add(self, key: str, err: Exception) -> None:
         with self._lock:
@@ -186,9 +200,17 @@ def typed_handler(expected: type, on_msg: Callable[[str, Any], None],
     return handler
 
 
-def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float) -> Any:
-    """Ask a queryable for one message; raise ``TimeoutError`` if nobody answers."""
-    for reply in session.get(key, timeout=timeout_s):
+def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float,
+              drops: DropCounter | None = None) -> Any:
+    """Ask a queryable for one message: the first reply that decodes as ``expected``;
+    the others are dropped (and counted in ``drops``). Replies are not consolidated: a
+    stranger's reply on the same key must not replace the real one. ``TimeoutError`` if
+    no reply decodes."""
+    for reply in session.get(key, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE):
         if reply.ok is not None:
-            return decode(reply.ok.payload.to_bytes(), expected)
-    raise TimeoutError(f"no reply on {key} within {timeout_s} s")
+            try:
+                return decode(reply.ok.payload.to_bytes(), expected)
+            except MalformedMessage as err:
+                if drops is not None:
+                    drops.add(key, err)
+    raise TimeoutError(f"no valid reply on {key} within {timeout_s} s")

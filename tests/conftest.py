@@ -1,7 +1,8 @@
-"""Shared fixtures: free loopback ports and process cleanup."""
+"""Shared fixtures: free loopback ports and process cleanup; hypothesis profiles."""
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -9,6 +10,17 @@ import time
 from collections.abc import Callable
 
 import pytest
+from hypothesis import HealthCheck, Phase, settings
+
+# Property tests run the bounded, derandomized "ci" profile (the same examples every
+# run, no per-example deadline on a loaded machine); AUTOCAST_HYPOTHESIS=fuzz runs
+# 10,000 random examples per property instead.
+settings.register_profile("ci", max_examples=25, derandomize=True, deadline=None, database=None,
+                          phases=[Phase.explicit, Phase.generate, Phase.shrink],
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+settings.register_profile("fuzz", max_examples=10_000, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+settings.load_profile(os.environ.get("AUTOCAST_HYPOTHESIS", "ci"))
 
 
 def free_port() -> int:

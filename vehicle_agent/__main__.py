@@ -61,11 +61,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def _ask(session, key: str, expected: type, deadline: float):
+def _ask(session, key: str, expected: type, deadline: float, drops: DropCounter):
     """Query until the world answers (it may start after us)."""
     while True:
         try:
-            return query_one(session, key, expected, timeout_s=2.0)
+            return query_one(session, key, expected, timeout_s=2.0, drops=drops)
         except TimeoutError:
             if time.monotonic() > deadline:
                 raise
@@ -103,8 +103,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     scans: queue.Queue[Scan] = queue.Queue()
     deadline = time.monotonic() + args.startup_timeout_s
     try:
-        mapmsg = _ask(session, keys.world_map(run), MapMsg, deadline)
-        mission = _ask(session, keys.mission(run, vid), Mission, deadline)
+        mapmsg = _ask(session, keys.world_map(run), MapMsg, deadline, drops)
+        mission = _ask(session, keys.mission(run, vid), Mission, deadline, drops)
     except TimeoutError as exc:
         log.error("world never answered: %s", exc)
         return 2
@@ -153,6 +153,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         step.close()
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
+    print(drops.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
     print("agent_timings " + json.dumps(step.timing_summary()), file=sys.stderr, flush=True)
     if profiler is not None:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)

@@ -108,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         print(summary(result))
         if args.json:
             print(json.dumps(result, allow_nan=False), flush=True)
+    print(server.drops.exit_line("world"), file=sys.stderr, flush=True)  # after the session closed: every drop
     return 0
 
 

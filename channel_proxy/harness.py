@@ -80,12 +80,12 @@ class Harness:
         self.stats[m.tick] = m.stats
 
     def _ctrl(self, m: CtrlBundle, raw: bytes) -> None:
+        self.ctrl_raw[m.tick] = raw  # before the bundle a waiter looks for
         self.ctrl[m.tick] = {v: Heard(m.tick, v, m.heard_by(v)) for v in m.receivers.tolist()}
-        self.ctrl_raw[m.tick] = raw
 
     def _data(self, m: DataBundle, raw: bytes) -> None:
+        self.data_raw[m.tick] = raw  # before the bundle a waiter looks for
         self.data[m.tick] = {v: Decoded(m.tick, v, m.received_by(v)) for v in m.receivers.tolist()}
-        self.data_raw[m.tick] = raw
 
     def _emp(self, m: EmpBundle, raw: bytes) -> None:
         self.emp[m.tick][m.receiver] = m

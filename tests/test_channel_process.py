@@ -175,7 +175,6 @@ def run_twice_inputs(ep: str) -> tuple[list, list]:
     with driver(ep, [1, 2, 3]) as h:
         for k in range(3):
             interval(h, k, {v: [tx(10 * v + i, (30 * (v - 1) + 2 * i) * MS, 1200) for i in range(10)] for v in (1, 2, 3)})
-        time.sleep(0.1)
         return [h.ctrl_raw[k] for k in range(3)], [h.data_raw[k] for k in range(3)]
 
 
@@ -200,18 +199,19 @@ def test_a_silent_vehicle_is_waited_for_then_declared_dead_and_revived_when_it_s
             t0 = time.monotonic()
             _, _, stats = interval(h, k, {}, senders=[1, 2])
             waits.append(time.monotonic() - t0)
-        assert waits[0] > 0.45 and waits[1] > 0.45 and waits[2] < 0.4  # dead after two absences
-        assert stats["dead"] == [3]
+        assert waits[0] >= 0.5 and waits[1] >= 0.5  # each waited out its phase timeout for 3
+        assert stats["dead"] == [3] and stats["ctrl"]["absent"] == []  # dead after two absences: not waited for
         _, _, stats = interval(h, 3, {}, senders=[3, 1, 2])  # 3 first: a phase does not wait for the dead
         assert stats["dead"] == [] and stats["ctrl"]["absent"] == []
 
 
 def test_realtime_mode_closes_phases_at_wall_clock_deadlines():
-    with proxy("--profile", "ideal", "--realtime", "--ctrl-deadline-s", "0.05", "--data-deadline-s", "0.1") as ep, \
-            driver(ep, [1, 2, 3]) as h:
-        t0 = time.monotonic()
+    """Vehicle 3 never speaks and the phase timeout is 600 s, so only the real-time
+    deadline can close the control phase before the harness gives up on the bundles. The
+    deadlines are seconds long so that 1's and 2's messages are in time on any machine."""
+    with proxy("--profile", "ideal", "--realtime", "--ctrl-deadline-s", "2", "--data-deadline-s", "5",
+               "--phase-timeout-s", "600") as ep, driver(ep, [1, 2, 3]) as h:
         _, _, stats = interval(h, 0, {1: [tx(1, 0.0, 100)]}, senders=[1, 2])
-        assert time.monotonic() - t0 < 1.0
         assert stats["ctrl"]["absent"] == [3]
         assert stats["data"]["delivered_pairs"] == 1  # to 2; 3 never said where it is, so it is nowhere
 

@@ -12,7 +12,9 @@ same scenario and seed on one host. It skips, saying why, where namespaces are u
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -20,11 +22,13 @@ import time
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from deploy import hosts, netns, table
 from deploy.hosts import Host, HostProcessManager, HostsFile, load_hosts, parse_hosts, place
 from deploy.procs import ProcSpec
 from deploy.run import InputError, LaunchOptions, options_from, build_parser
+from tests.conftest import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "deploy" / "hosts.example.toml"
@@ -174,9 +178,8 @@ def test_a_process_is_stopped_through_its_hosts_prefix(tmp_path):
         while "listening on" not in (tmp_path / f"{here.router}.log").read_text():
             assert time.monotonic() < deadline and proc.poll() is None, (tmp_path / f"{here.router}.log").read_text()
             time.sleep(0.05)
-        t0 = time.monotonic()
-        procs.stop([here.router], grace_s=10)
-        assert proc.returncode == 0 and time.monotonic() - t0 < 5  # SIGINT through the prefix, no SIGKILL
+        procs.stop([here.router], grace_s=60)
+        assert proc.returncode == 0  # SIGINT through the prefix: a SIGKILL would be -9
     finally:
         procs.stop_all(0.5)
 
@@ -227,7 +230,7 @@ def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_pat
         hosts_file.write_text(lab.hosts_toml())
         # Both at once (the same code, less wall time); the second starts once the first has
         # warmed the numba caches (the namespaces share this machine's files) and skips that.
-        deadline = time.monotonic() + 240  # measured 90-125 s for the whole test with other jobs running
+        deadline = time.monotonic() + 600  # a safety net: measured 90-125 s for the whole test with other jobs running
         single = _launch([sys.executable, "-m", "deploy.cli", "run", *flags, "--run-id", "single"],
                          tmp_path / "single.err")
         while "caches warm" not in (tmp_path / "single.err").read_text() and single.poll() is None:
@@ -275,13 +278,61 @@ def test_a_router_that_cannot_start_fails_the_run_at_once(tmp_path):
                           f'[[host]]\nname = "a"\naddress = "127.0.0.1"\nport = {ports[0]}\n'
                           f'run = ["world", "recorder", "proxy"]\nagents = "rest"\n'
                           f'[[host]]\nname = "b"\naddress = "192.0.2.1"\nport = {ports[1]}\n')
-    t0 = time.monotonic()
     out = subprocess.run([sys.executable, "-m", "deploy.cli", "deploy", "--hosts", str(hosts_file), *RUN_FLAGS,
                           "--no-warm-up", "--json", "--out", str(tmp_path / "runs"), "--run-id", "r"],
-                         capture_output=True, text=True, timeout=60)
+                         capture_output=True, text=True, timeout=120)
     assert out.returncode == 3, out.stderr
     record = json.loads(out.stdout.strip().splitlines()[-1])
+    # at once: the router's exit, not the mesh check's timeout ("not linked after ...")
     assert record["outcome"] is None and record["failure"].startswith("router-b exited")
-    assert time.monotonic() - t0 < 30
     left = subprocess.run(["pgrep", "-f", f"--listen tcp/127.0.0.1:{ports[0]}"], capture_output=True, text=True)
     assert left.stdout == "", "host a's router was left running"
+
+
+def _pid_in(ns: str, module: str) -> int:
+    for pid in subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout.split():
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:
+            continue
+        if "-m" in argv and argv[argv.index("-m") + 1] == module:
+            return int(pid)
+    raise AssertionError(f"no {module} process in {ns}")
+
+
+def test_a_hosts_router_killed_mid_run_fails_the_run_and_leaves_nothing(tmp_path):
+    """h1's router (the proxy's host) is SIGKILLed while the run is under way: agent 2
+    hangs at tick 10 and may take 600 s to be declared dead, so the run cannot end on its
+    own first. The launcher fails the run (exit 3) for the dead router, not after its
+    wall-clock limit; the MCAP on h0 is finalized; nothing is left in any namespace."""
+    reason = netns.unavailable()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    out = tmp_path / "runs"
+    with netns.Lab(4) as lab:
+        hosts_file = tmp_path / "hosts.toml"
+        hosts_file.write_text(lab.hosts_toml())
+        err = tmp_path / "deploy.err"
+        with open(err, "w") as f:
+            proc = subprocess.Popen(netns.deploy_argv(lab, hosts_file, [*RUN_FLAGS, "--json", "--out", str(out),
+                                                                        "--run-id", "cut", "--agent-timeout-s", "600"]),
+                                    stdout=subprocess.PIPE, stderr=f, text=True, start_new_session=True,
+                                    env=dict(os.environ, AUTOCAST_FAULTS="agent2:hang@10"))
+        try:
+            world_log = out / "cut" / "logs" / "world.log"
+            wait_until(lambda: world_log.exists() and "agents up" in world_log.read_text() or proc.poll() is not None,
+                       "the world started ticking", timeout_s=240)
+            assert proc.poll() is None, err.read_text()[-3000:]
+            os.kill(_pid_in(lab.hosts[1].ns, "deploy.router"), signal.SIGKILL)
+            stdout, _ = proc.communicate(timeout=240)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        left = lab.leftovers()
+    assert proc.returncode == 3, err.read_text()[-3000:]
+    record = json.loads(stdout.strip().splitlines()[-1])
+    assert record["outcome"] is None and record["failure"].startswith("router-h1 exited (code -9)"), record
+    with open(out / "cut" / "run.mcap", "rb") as f:
+        assert make_reader(f).get_summary() is not None
+    assert left == {}, f"processes left in the namespaces: {left}"

@@ -9,7 +9,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import pytest
 
 from deploy import report, sweep
 from deploy.sweep import RunKey
+from tests.conftest import wait_until
 
 # ---------------------------------------------------------------------------- the matrix
 
@@ -306,19 +306,20 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path):
 
 
 def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
+    """Agent 1 hangs at tick 5 (and would be declared dead only after 600 s), so the run
+    is still going whenever the SIGINT lands."""
     out = tmp_path / "stop"
     proc = subprocess.Popen([sys.executable, "-m", "deploy.cli", "sweep", "--preset", "smoke", "--vehicles", "2",
-                             "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                             "--agent-timeout-s", "600", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, AUTOCAST_FAULTS="agent1:hang@5"))
     run_id = "left_turn-v2-c30-d0-single-s0-t20"
     pids = out / "runs" / run_id / "pids.json"
     try:
-        deadline = time.monotonic() + 60
-        while not pids.exists():
-            assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else ""
-            time.sleep(0.1)
+        wait_until(lambda: pids.exists() or proc.poll() is not None, "the run started", timeout_s=240)
+        assert proc.poll() is None, proc.stderr.read()
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -11,8 +11,8 @@ from vehicle_agent.frames import scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _merge_shadowed,
                                       _object_stats, build_grid, extract_objects, label_components)
-from vehicle_agent.spatial import relevance, visibility, visible_share
-from vehicle_agent.tracking import Tracker, _share_in
+from vehicle_agent.spatial import relevance, sample_trajectory, visibility, visible_share
+from vehicle_agent.tracking import Tracker
 from world_server import lidar
 from world_server.geometry import box_corners
 
@@ -77,7 +77,7 @@ def test_empty_cells_behind_an_object_are_occluded_area():
 def test_tracking_keeps_ids_and_estimates_velocity():
     tracker = Tracker()
     ids, vel = [], None
-    for k in range(15):  # motion is judged over a 1 s window: 10 ticks
+    for k in range(15):
         x = 20.0 + 1.0 * k  # 10 m/s along x, 0.1 s per tick
         _, objs = perceive([[x, 3.5, 0.0, 4.5, 1.8, 1.5], [15.0, -6.0, 0.0, 4.5, 1.8, 1.5]])
         tracks = tracker.update(objs, 0.1 * k)
@@ -127,18 +127,6 @@ def test_a_part_in_anothers_shadow_merges_only_across_unseen_cells(between, part
     assert np.array_equal(merged > 0, labels > 0)
 
 
-def test_share_of_cells_kept_matches_isin():
-    rng = np.random.default_rng(3)
-    past = np.unique(rng.integers(0, 200, 120))
-    parts = [np.unique(rng.integers(0, 260, n)) for n in (7, 0, 30, 1, 12)]  # one detection's cells each
-    counts = np.array([len(p) for p in parts])
-    ids = np.concatenate(parts)
-    reference = [np.isin(p, past).mean() if len(p) else 0.0 for p in parts]
-    assert _share_in(ids, counts, past) == pytest.approx(reference)
-    assert _share_in(ids, counts, None) is None
-    assert _share_in(ids, counts, np.zeros(0, np.int64)).tolist() == [0.0] * len(counts)
-
-
 def _quad(cx, cy, yaw, length, width):
     return box_corners(cx, cy, yaw, length, width)
 
@@ -186,6 +174,54 @@ def test_crossing_trajectories_are_relevant_parallel_ones_are_not():
     ttc = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[20.0, 0.0]]), np.array([[-5.0, 0.0]]),
                     np.array([[4.5, 1.8]]), 0.0, mode="ttc")
     assert 1 / (1 + 4.0) < ttc[0, 0] < 1 / (1 + 3.0)
+
+
+@pytest.mark.parametrize("late_s, relevant", [(0.0, 1.0), (1.5, 1.0), (-1.5, 1.0), (3.5, 0.0), (-3.5, 0.0)])
+def test_an_object_that_could_collide_within_the_timing_window_is_relevant(late_s, relevant):
+    """j drives north through the origin at t = 4 s; the object crosses it westwards
+    ``late_s`` later. Bodies within 1 m while the object is within +-2 s of that moment
+    count: by hand, the object is 5 m per s x 2 s = 10 m along its lane from the
+    crossing at the window's edge, far more than the bodies' 2.8 m plus 1.35 m reach."""
+    t = np.arange(0.0, 9.0, 1.0)
+    j_traj = np.stack([np.zeros_like(t), -20.0 + 5.0 * t, t], axis=1)
+    x0 = 5.0 * (4.0 + late_s)  # at the origin at 4 + late_s
+    r = relevance([j_traj], np.array([[4.5, 1.8]]), np.array([[x0, 0.0]]), np.array([[-5.0, 0.0]]),
+                  np.array([[4.5, 1.8]]), 0.0)
+    assert r[0, 0] == relevant
+
+
+def test_relevance_matches_a_dense_reference_on_random_traffic():
+    """The kernel against a direct evaluation: j's three circles at each sample time
+    against k's three circles at every time of the window, sampled every 0.01 s."""
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 9.0, 1.0)
+    trajs = []
+    for _ in range(4):
+        p0, v = rng.uniform(-30, 30, 2), rng.uniform(-8, 8, 2)
+        trajs.append(np.column_stack([p0[0] + v[0] * t, p0[1] + v[1] * t, t]))
+    xy, vel = rng.uniform(-30, 30, (12, 2)), rng.uniform(-8, 8, (12, 2))
+    dims = np.tile([4.5, 1.8], (12, 1))
+    got = relevance(trajs, np.tile([4.5, 1.8], (4, 1)), xy, vel, dims, 0.0)
+    times = np.arange(0.0, 8.0 + 1e-9, 0.25)
+    off = np.array([-1.0, 0.0, 1.0]) * 1.35
+    checked = 0
+    for j, wp in enumerate(trajs):
+        pos, head = sample_trajectory(wp, times)
+        cj = pos[:, None, :] + off[None, :, None] * np.stack([np.cos(head), np.sin(head)], axis=1)[:, None, :]
+        for k in range(12):
+            hk = np.arctan2(vel[k, 1], vel[k, 0])
+            d_min = np.inf
+            for ti, tt in enumerate(times):
+                tau = np.arange(max(tt - 2.0, 0.0), tt + 2.0 + 1e-9, 0.01)
+                ck = (xy[k] + tau[:, None] * vel[k])[:, None, :] + off[None, :, None] * [np.cos(hk), np.sin(hk)]
+                d_min = min(d_min, np.linalg.norm(cj[ti][:, None, None, :] - ck[None], axis=-1).min())
+            reach = 0.9 + 0.9 + 1.0
+            if d_min < reach - 0.1:  # the dense samples are 0.08 m apart at most: well inside the slack
+                assert got[j, k] == 1.0, (j, k, d_min)
+                checked += 1
+            elif d_min > reach + 0.1:
+                assert got[j, k] == 0.0, (j, k, d_min)
+    assert checked > 0
 
 
 def test_transform_round_trip_is_exact():
@@ -296,6 +332,34 @@ def test_not_me_drops_what_others_saw_of_us_where_we_are_and_were():
                  [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8).objects()
     assert [o.key[0] for o in out] == [2, 4]
     np.testing.assert_array_equal(out[0].points_world, car)
+
+
+def test_not_me_drops_our_ghost_that_a_sender_extrapolated_past_us():
+    """A sender captured us 1 s ago at (-1, 0), tracked at 6 m/s east; we braked and are
+    at (0, 0). Placed now its points are 5 m ahead, clear of our body (|dx| <= 2.75),
+    but where it captured them they are on our body as we were: dropped. A car
+    captured 1 s ago 10 m ahead of that, at the same velocity, stays."""
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me
+
+    body = np.array([[-2.0, 0.5, 1.0], [0.0, -0.8, 1.0], [2.0, 0.0, 1.0]])
+    ghost = SharedObject((1, 0), body + [5.0, 0.0, 0.0], np.array([6.0, 0.0]), 1.0, False)  # x 3, 5, 7
+    car = SharedObject((1, 1), body + [15.0, 0.0, 0.0], np.array([6.0, 0.0]), 1.0, False)
+    out = not_me(SharedBatch.of([ghost, car]), [Pose(0.0, 0.0, 0.0), Pose(-1.0, 0.0, 0.0)], 4.5, 1.8).objects()
+    assert [o.key for o in out] == [(1, 1)]
+
+
+def test_not_me_stills_an_object_that_merged_us_with_a_parked_truck():
+    """A sender saw us pass a parked truck as one object moving at our speed (6 m/s east),
+    captured 0.5 s ago. One point in ten is ours: it goes, and the truck's points stand
+    where they were captured, not moved 3 m on, with no velocity."""
+    from vehicle_agent.fusion import SharedBatch, SharedObject, not_me
+
+    truck = np.column_stack([np.linspace(8.0, 12.0, 9), np.full(9, -2.0), np.full(9, 1.5)])
+    placed = np.vstack([[[0.0, 0.0, 1.0]], truck + [3.0, 0.0, 0.0]])  # as the receiver placed them
+    obj = SharedObject((3, 10), placed, np.array([6.0, 0.0]), 0.5, True)
+    (out,) = not_me(SharedBatch.of([obj]), [Pose(0.0, 0.0, 0.0)], 4.5, 1.8).objects()
+    np.testing.assert_allclose(out.points_world, truck)
+    assert out.velocity_xy.tolist() == [0.0, 0.0]
 
 
 def test_not_me_matches_testing_every_point_against_every_pose():
@@ -485,3 +549,24 @@ def test_the_drivable_raster_equals_testing_every_cell_against_every_polygon():
         got = DrivableRaster(polygons, 0.5).values
         want = reference(polygons, 0.5)
         assert got.any() and np.array_equal(got, want)
+
+
+def test_a_mover_on_a_lane_takes_the_lane_direction_and_keeps_its_speed():
+    from protocol.messages import Lane
+    from vehicle_agent.dataplane import LaneDirections
+    from vehicle_agent.tracking import Track
+
+    lanes = LaneDirections([Lane("W", np.array([[50.0, 2.0], [-50.0, 2.0]]), 4.0, 10.0, -1, -1.0)])
+    det = None
+
+    def track(xy, vel):
+        return Track(0, np.array(xy, float), np.array(vel, float), 0.0, det)
+
+    oncoming = track([10.0, 2.5], [-8.0, -0.4])  # 2.9 degrees off the lane: snapped, same speed
+    crossing = track([0.0, 2.0], [0.0, -8.0])  # across the lane: kept
+    elsewhere = track([0.0, 9.0], [-8.0, -0.4])  # off the lane: kept
+    parked = track([5.0, 2.0], [0.0, 0.0])
+    lanes.snap([oncoming, crossing, elsewhere, parked])
+    assert oncoming.velocity == pytest.approx([-np.hypot(8.0, 0.4), 0.0])
+    assert crossing.velocity.tolist() == [0.0, -8.0] and elsewhere.velocity.tolist() == [-8.0, -0.4]
+    assert parked.velocity.tolist() == [0.0, 0.0]

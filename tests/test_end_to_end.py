@@ -1,7 +1,7 @@
 """The paper's headline, end to end: real processes (world, channel proxy, one agent per
-vehicle, recorder) through ``autocast run``. In the left turn at delta 0 the truck hides
-the oncoming collider: on its own LiDAR alone the ego is unsafe; with AutoCast's
-sharing it passes safely."""
+vehicle, recorder) through ``autocast run``. In the red-light violation at delta 0 the
+parked row and the truck at the junction hide the red-light runner: on its own LiDAR
+alone the ego is unsafe; with AutoCast's sharing it passes safely (docs/scenarios.md)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 
 
 def autocast_run(tmp_path, scheme: str) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--scenario", "left_turn", "--vehicles", "5",
+    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--scenario", "red_light", "--vehicles", "5",
                            "--delta", "0", "--seed", "0", "--scheme", scheme, "--duration", "16", "--json",
                            "--out", str(tmp_path), "--scans", "none", "--log-level", "WARNING"],
                           capture_output=True, text=True, timeout=300)

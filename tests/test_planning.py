@@ -64,9 +64,9 @@ def _straight(n_m: float = 60.0) -> np.ndarray:
 def test_a_car_crossing_when_the_ego_gets_there_stops_it_before_its_swept_lane():
     """Ego east along y=0 at 10 m/s; a 4.5 x 1.8 car drives north along x=30 and is at
     the crossing at t=3 s, when the ego is. The ego's body is three circles of radius
-    0.9*sqrt(2) at -1.35, 0, +1.35 m; clearance 2.3 m: reach 3.573 m. The car's side
-    (its box's x half 0.9) is within reach of the front circle once
-    30 - (s + 1.35) - 0.9 < 3.573, i.e. s > 24.177: the first waypoint is 24.5 m."""
+    0.9 at -1.35, 0, +1.35 m; it waits 2.0 m clear of the car's swept lane: reach 2.9 m.
+    The car's side (its box's x half 0.9) is within reach of the front circle once
+    30 - (s + 1.35) - 0.9 < 2.9, i.e. s > 24.85: the first waypoint is 25.0 m."""
     from protocol.messages import VehicleSpec
     from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
 
@@ -74,13 +74,45 @@ def test_a_car_crossing_when_the_ego_gets_there_stops_it_before_its_swept_lane()
     t_path = arc_lengths(path) / 10.0
     car = Obstacle(np.array([30.0, -30.0]), np.array([0.0, 10.0]), 4.5, 1.8, 0.0, np.pi / 2)
     spec, cfg = VehicleSpec(**SPEC), PlannerConfig()
-    assert first_conflict(path, t_path, spec, [car], 0.0, cfg) == pytest.approx(24.5)
+    assert first_conflict(path, t_path, spec, [car], 0.0, cfg) == pytest.approx(25.0)
     # seen 1 s ago 10 m further back: the same car now
     older = Obstacle(np.array([30.0, -40.0]), np.array([0.0, 10.0]), 4.5, 1.8, -1.0, np.pi / 2)
-    assert first_conflict(path, t_path, spec, [older], 0.0, cfg) == pytest.approx(24.5)
+    assert first_conflict(path, t_path, spec, [older], 0.0, cfg) == pytest.approx(25.0)
     # 5 s later: when the ego is at the crossing (t = 3 +- 1.5 s) the car is 20 m or more short of it
     late = Obstacle(np.array([30.0, -80.0]), np.array([0.0, 10.0]), 4.5, 1.8, 0.0, np.pi / 2)
     assert first_conflict(path, t_path, spec, [late], 0.0, cfg) is None
+
+
+def _overtaking_path() -> np.ndarray:
+    """East along y = -2 (the ego's lane of a 4 m two-lane road), over to y = +2 from
+    x = 10 to 14 m to pass a parked truck, back from x = 30 to 34 m."""
+    x = np.arange(0.0, 60.0 + 1e-9, 0.5)
+    y = np.interp(x, [0.0, 10.0, 14.0, 30.0, 34.0, 60.0], [-2.0, -2.0, 2.0, 2.0, -2.0, -2.0])
+    return np.column_stack([x, y])
+
+
+def test_an_oncoming_car_in_its_own_lane_needs_no_stop_but_one_in_the_way_of_a_pass_does():
+    """A car comes west along y = +2 at 8 m/s. An ego keeping its lane (y = -2) passes
+    it 4 - 1.8 = 2.2 m apart: within the 2.3 m it plans with, but outside the 2.0 m it
+    must wait clear of, so no stop. An ego about to pass a truck in the car's lane must
+    wait before its body comes within 2.9 m of y = +2 - 0.9 = 1.1, i.e. before a
+    circle's centre reaches y > -1.8. The path bends at x = 10 to y = -2 + (x - 10);
+    from the waypoint at s = 9.0 the front circle, 1.35 m further along, is at
+    s = 10.35, x = 10 + 0.35 / sqrt(2) = 10.247, y = -1.753: the zone starts there (at
+    s = 8.5 the front circle is still on the straight, y = -2)."""
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
+
+    spec, cfg = VehicleSpec(**SPEC), PlannerConfig()
+    car = Obstacle(np.array([70.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    lane = np.column_stack([np.arange(0.0, 60.0 + 1e-9, 0.5), np.full(121, -2.0)])
+    assert first_conflict(lane, arc_lengths(lane) / 6.0, spec, [car], 0.0, cfg) is None
+    path = _overtaking_path()
+    stop = first_conflict(path, arc_lengths(path) / 6.0, spec, [car], 0.0, cfg)
+    assert stop == pytest.approx(9.0)
+    # the same car 150 m away: by the time it arrives the pass is over, no stop
+    far = Obstacle(np.array([150.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    assert first_conflict(path, arc_lengths(path) / 6.0, spec, [far], 0.0, cfg) is None
 
 
 def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
@@ -88,10 +120,10 @@ def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
     kernel must give the same answer."""
     from vehicle_agent.paths import point_at
 
-    def near(path, pos, half, cos_h, sin_h):
+    def near(path, pos, half, cos_h, sin_h, clear):
         full = arc_lengths(path)
         body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-        radius = np.hypot(spec.width_m / 2, spec.width_m / 2)
+        radius = spec.width_m / 2
         out = np.zeros(pos.shape[:-1], dtype=bool)
         extra = (None,) * (pos.ndim - 2)
         for shift in (-body_half, 0.0, body_half):
@@ -99,7 +131,7 @@ def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
             d = point[(slice(None), *extra)] - pos
             u = np.abs(d[..., 0] * cos_h + d[..., 1] * sin_h) - half[:, 0]
             v = np.abs(-d[..., 0] * sin_h + d[..., 1] * cos_h) - half[:, 1]
-            out |= np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0)) < radius + cfg.safety_m
+            out |= np.hypot(np.maximum(u, 0.0), np.maximum(v, 0.0)) < radius + clear
         return out
 
     s = arc_lengths(path)
@@ -115,18 +147,24 @@ def _first_conflict_reference(path, t_path, spec, obstacles, t_now_s, cfg):
     offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)
     pos = xy[None, None] + vel[None, None] * (when[..., None, None] + dt_obs[None, None, :, None])
-    timed = near(path, pos, half, cos_h, sin_h).any(axis=1)
+    timed = near(path, pos, half, cos_h, sin_h, cfg.safety_m).any(axis=1)
     timed[s < 0.5] = False
     conflicting = timed.any(axis=0)
     if not conflicting.any():
         return None
     sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)
     swept = xy[None] + vel[None] * (sweep_t[:, None, None] + dt_obs[None, :, None])
-    zone = near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h).any(axis=1)
+    zone = near(path, np.broadcast_to(swept, (len(path), *swept.shape)), half, cos_h, sin_h,
+                cfg.wait_clear_m).any(axis=1)
     zone = zone[:, conflicting]
-    zone[s < 0.5] = False
-    first = zone.any(axis=1) | timed[:, conflicting].any(axis=1)
-    return float(s[np.argmax(first)])
+    first = zone.any(axis=1)
+    if first[0]:  # inside a zone: out of it unless the conflict falls before
+        leave = next((i for i in range(len(first)) if not first[i]), len(first))
+        if timed[:leave, conflicting].any():
+            return float(s[min(1, len(s) - 1)])
+        first[:leave] = False
+    first[s < 0.5] = False
+    return float(s[np.argmax(first)]) if first.any() else None
 
 
 def test_first_conflict_matches_the_dense_reference_on_random_traffic():
@@ -154,3 +192,59 @@ def test_first_conflict_matches_the_dense_reference_on_random_traffic():
         assert got == want
         found += want is not None
     assert 40 < found < 190  # both answers are exercised
+
+
+def test_smoothing_keeps_clear_of_the_obstacle_margin_the_grid_path_avoided():
+    """A grid path that steps round a blocked block at a right angle: the moving average
+    would cut the corner into the block; the kept path does not touch a blocked cell."""
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _smooth, _smooth_clear
+
+    spec = GridSpec(half_extent_m=10.0)
+    n = spec.cells
+    grid = Grid(spec, -n // 2, -n // 2, np.zeros((n, n), np.uint8), np.ones((n, n), bool))
+    blocked = np.zeros((n, n), bool)
+    rows, cols = grid.cell_of(np.array([[0.25, 0.25]]))[0]
+    blocked[rows - 8:rows, cols:cols + 8] = True  # x in [0, 4), y in [-4, 0)
+    # north along the block's west side (cell centres x = -0.25), then east along its north side (y = 0.25)
+    path = np.vstack([np.column_stack([np.full(10, -0.25), np.arange(-4.75, 0.0, 0.5)]),
+                      np.column_stack([np.arange(-0.25, 4.5, 0.5), np.full(10, 0.25)])])
+    rc = grid.cell_of(_smooth(path))
+    assert blocked[rc[:, 0], rc[:, 1]].any()  # the plain average cuts into the block
+    kept = _smooth_clear(path, grid, blocked)
+    s = np.linspace(0.0, 1.0, 400)
+    seg = np.diff(kept, axis=0)
+    pts = (kept[:-1, None, :] + s[None, :, None] * seg[:, None, :]).reshape(-1, 2)
+    rc = grid.cell_of(pts)
+    assert not blocked[rc[:, 0], rc[:, 1]].any()
+
+
+def test_a_reused_path_is_measured_from_where_the_vehicle_is_now():
+    from vehicle_agent.planning import path_from
+
+    path = _straight(20.0)
+    rest = path_from(path, np.array([7.3, 0.4]))
+    assert rest[0].tolist() == [7.3, 0.4] and rest[1].tolist() == [7.5, 0.0]
+    assert arc_lengths(rest)[-1] == pytest.approx(np.hypot(0.2, 0.4) + 12.5)
+    assert path_from(path, np.array([25.0, 0.0])).tolist() == [[25.0, 0.0], [20.0, 0.0]]
+
+
+def test_an_ego_already_out_in_the_oncoming_lane_drives_on_unless_the_car_is_upon_it():
+    """The pass of ``_overtaking_path`` seen from x = 16, out in the oncoming lane (y = +2)
+    until x = 30, back in its lane (y = -2) from x = 34. A car coming west along y = +2
+    at 8 m/s from x = 102: the ego, at 6 m/s, is back in its lane at x = 50 at 5.94 s
+    (s = 14 + 4 sqrt(2) + 16), when the car is at 54.5 m, 3.1 m across (< 0.9 + 2.3):
+    a conflict, but outside the zone it waits out of (0.9 + 2.0). On the pass (until
+    3.3 s, +1.5 s) the car is beyond x = 63: drive on, nothing to stop for. From x = 70
+    the car is at x = 31.8 at 3.28 + 1.5 s, on the ramp back: upon the ego while it is
+    still out there, stop at once (the first waypoint, 0.5 m)."""
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacle, PlannerConfig, first_conflict
+
+    spec, cfg = VehicleSpec(**SPEC), PlannerConfig(horizon_s=30.0)
+    path = _overtaking_path()[32:]  # from x = 16
+    t_path = arc_lengths(path) / 6.0
+    far = Obstacle(np.array([102.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    near = Obstacle(np.array([70.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
+    assert first_conflict(path, t_path, spec, [far], 0.0, cfg) is None
+    assert first_conflict(path, t_path, spec, [near], 0.0, cfg) == pytest.approx(0.5)

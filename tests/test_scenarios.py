@@ -40,7 +40,8 @@ def test_left_turn_geometry_by_hand():
 @pytest.mark.parametrize("n", [2, 5, 20, 40])
 def test_vehicles_are_placed_without_overlap(name, n):
     sc = build(ScenarioParams(scenario=name, vehicles=n, seed=3))
-    assert len(sc.connected()) == n and len(sc.actors) == n + 1
+    assert [a.vid for a in sc.connected()] == list(range(n))
+    assert [a.vid for a in sc.passive()] == list(range(n, len(sc.actors)))
     poses = np.array([a.start_pose() for a in sc.actors])
     corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], [a.spec.length_m for a in sc.actors],
                           [a.spec.width_m for a in sc.actors])

@@ -53,7 +53,7 @@ class Agent:
         starvation counter of each of its objects."""
         with timed(self.timings_ms, "spatial_reasoning"):
             traj = self.last_plan.trajectory if self.last_plan is not None else \
-                np.array([[scan.pose.x_m, scan.pose.y_m, scan.t_sim_s]], dtype=np.float32)
+                self.planner.intended(scan.pose, scan.speed_mps, scan.t_sim_s)
             return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard, unscheduled)
 
     def fuse(self, view: View, payloads: list[bytes]) -> FusedGrid:

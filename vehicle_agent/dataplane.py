@@ -29,7 +29,7 @@ from vehicle_agent.tracking import Track, Tracker
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
 GUARD_BAND_M = 1.8  # 40 mph for one T_d
-TRAJECTORY_HORIZON_S = 6.0
+TRAJECTORY_HORIZON_S = 8.0  # as far as others judge relevance (spatial.HORIZON_S)
 TRAJECTORY_STEP_S = 1.0  # the shared trajectory is down-sampled to 1 s segments
 DEFAULT_DIMS = (4.5, 1.8)  # a car, for other vehicles' bodies
 
@@ -123,6 +123,7 @@ class DataPlane:
         self.raster = DrivableRaster(mapmsg.drivable, self.spec.cell_m)
         self.buildings = _box_corners(np.asarray(mapmsg.buildings, dtype=np.float64).reshape(-1, 6))
         self.tracker = Tracker()
+        self.lanes = LaneDirections(mapmsg.lanes)
         self.received = ReceivedStore()
         self.neighbors = NeighborTable()
         self.relevance_mode = relevance_mode
@@ -152,6 +153,7 @@ class DataPlane:
             detections = extract_objects(world, grid, cell_idx, (scan.pose.x_m, scan.pose.y_m))
         with self._timed("tracking"):
             tracks = self.tracker.update(detections, scan.t_sim_s)
+            self.lanes.snap(tracks)
         return View(scan.tick, scan.t_sim_s, scan.pose, grid, tracks)
 
     # ----------------------------------------------------------------- reason
@@ -235,6 +237,52 @@ class DataPlane:
             self.shared = self.shared_batch.objects()
             fused = fuse(view.grid, self.shared_batch)
         return fused, bad
+
+
+class LaneDirections:
+    """The map's lanes as segments with their direction of travel. A mover on a lane,
+    heading along it (within ``SNAP_DEG``), keeps its speed but takes the lane's
+    direction: its tracked heading wavers by a few degrees as its visible faces change,
+    and extrapolated over the planner's 8 s horizon that puts an oncoming car in the
+    ego's own lane (measured: 0.2 m/s sideways, 1.6 m in 8 s)."""
+
+    SNAP_DEG = 20.0
+
+    def __init__(self, lanes) -> None:
+        a, d, length, half = [], [], [], []
+        for lane in lanes:
+            c = np.asarray(lane.centerline, dtype=np.float64)
+            seg = np.diff(c, axis=0)
+            n = np.hypot(seg[:, 0], seg[:, 1])
+            ok = n > 1e-6
+            a.append(c[:-1][ok])
+            d.append(seg[ok] / n[ok, None])
+            length.append(n[ok])
+            half.append(np.full(ok.sum(), lane.width_m / 2))
+        self.a = np.concatenate(a) if a else np.zeros((0, 2))
+        self.d = np.concatenate(d) if d else np.zeros((0, 2))
+        self.length = np.concatenate(length) if length else np.zeros(0)
+        self.half = np.concatenate(half) if half else np.zeros(0)
+
+    def snap(self, tracks: list[Track]) -> None:
+        """Turn each moving track's velocity to the direction of the lane it drives along."""
+        movers = [t for t in tracks if t.speed_mps > 0.0]
+        if not movers or not len(self.a):
+            return
+        xy = np.array([t.xy for t in movers])  # (T, 2)
+        vel = np.array([t.velocity for t in movers])
+        speed = np.hypot(vel[:, 0], vel[:, 1])
+        rel = xy[:, None, :] - self.a[None]  # (T, S, 2)
+        along = np.einsum("tsk,sk->ts", rel, self.d)
+        across = np.abs(rel[..., 0] * self.d[None, :, 1] - rel[..., 1] * self.d[None, :, 0])
+        cos = (vel @ self.d.T) / np.maximum(speed, 1e-9)[:, None]
+        on = (along >= 0) & (along <= self.length[None]) & (across <= self.half[None]) & \
+             (cos >= np.cos(np.radians(self.SNAP_DEG)))
+        score = np.where(on, across, np.inf)
+        best = np.argmin(score, axis=1)
+        for i, tr in enumerate(movers):
+            if np.isfinite(score[i, best[i]]):
+                tr.velocity = speed[i] * self.d[best[i]]
 
 
 def _box_corners(boxes: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from vehicle_agent.perception import ABOVE, GROUND, Grid
 
 MAX_AGE_S = 1.0
 SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
+MERGED_SHARE = 0.05  # ... with this share, it merged us with something else: its velocity is ours
 BODY_MARGIN_M = 0.5  # a point this close to our body's box is on it
 
 ObjectKey = tuple[int, int]  # (sender vid, object id)
@@ -169,25 +170,49 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
     """Drop what other vehicles saw of this vehicle itself: the objects that are mostly
     our body, and our body's points from the rest (an object may have merged us with a
     neighbour). ``poses`` are our current and recent poses: an older reception of us
-    sits where we were a moment ago. Objects without points are dropped too."""
+    sits where we were a moment ago. Each point is tested where it is placed now and
+    where it was captured (placed minus the sender's velocity times its age): a sender
+    that tracked us extrapolates us along the velocity we had, so once we brake our
+    ghost runs on ahead of us, and we braked for it (measured: overtaking, autocast,
+    the ego stopped beside the truck for received points of itself 4 m ahead). Objects
+    without points are dropped too."""
     pts = shared.points
+    counts = shared.counts
     mine = np.zeros(len(pts), dtype=bool)
     if poses and len(pts):
-        # only points within the box around all the poses, widened by the body's half
-        # diagonal (a point on the body at one of them lies inside it), are tested
-        reach = np.hypot(length_m / 2 + BODY_MARGIN_M, width_m / 2 + BODY_MARGIN_M)
-        px, py = np.array([p.x_m for p in poses]), np.array([p.y_m for p in poses])
-        x, y = pts[:, 0], pts[:, 1]
-        near = np.flatnonzero((x >= px.min() - reach) & (x <= px.max() + reach)
-                              & (y >= py.min() - reach) & (y <= py.max() + reach))
-        xy = pts[:, :2].take(near, axis=0)
-        hit = np.zeros(len(near), dtype=bool)
-        for pose in poses:  # a handful of poses, each test vectorized over the nearby points
-            hit |= on_body(xy, pose, length_m, width_m, BODY_MARGIN_M)
-        mine[near] = hit
-    counts = shared.counts
+        captured = pts[:, :2] - np.repeat(shared.velocity * shared.age_s[:, None], counts, axis=0)
+        for xy in (pts[:, :2], captured):
+            mine |= _on_bodies(xy, poses, length_m, width_m)
     share = np.bincount(shared.owner, weights=mine, minlength=len(shared)) / np.maximum(counts, 1)
+    merged = (share >= MERGED_SHARE) & (share < SELF_SHARE)
+    if merged.any():
+        # merged with us: its motion is ours, the rest of it is taken as standing where it
+        # was captured (measured: a parked car's view merged the truck with the passing
+        # ego; the truck, "moving" at the ego's speed, blocked the ego's way back)
+        back = np.repeat(np.where(merged[:, None], shared.velocity * shared.age_s[:, None], 0.0), counts, axis=0)
+        points = pts.copy()
+        points[:, :2] -= back
+        shared = SharedBatch(shared.keys, points, counts, np.where(merged[:, None], 0.0, shared.velocity),
+                             shared.age_s, shared.fresh)
     return shared.keep((counts > 0) & (share < SELF_SHARE), ~mine)
+
+
+def _on_bodies(xy: np.ndarray, poses: list, length_m: float, width_m: float) -> np.ndarray:
+    """Which points fall on our body at any of ``poses``. Only the points within the box
+    around all the poses, widened by the body's half diagonal (a point on the body at
+    one of them lies inside it), are tested."""
+    out = np.zeros(len(xy), dtype=bool)
+    reach = np.hypot(length_m / 2 + BODY_MARGIN_M, width_m / 2 + BODY_MARGIN_M)
+    px, py = np.array([p.x_m for p in poses]), np.array([p.y_m for p in poses])
+    x, y = xy[:, 0], xy[:, 1]
+    near = np.flatnonzero((x >= px.min() - reach) & (x <= px.max() + reach)
+                          & (y >= py.min() - reach) & (y <= py.max() + reach))
+    sub = xy.take(near, axis=0)
+    hit = np.zeros(len(near), dtype=bool)
+    for pose in poses:  # a handful of poses, each test vectorized over the nearby points
+        hit |= on_body(sub, pose, length_m, width_m, BODY_MARGIN_M)
+    out[near] = hit
+    return out
 
 
 def not_contradicted(shared: SharedBatch, grid: Grid, free_share: float = 0.5) -> SharedBatch:

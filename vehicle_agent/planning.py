@@ -47,6 +47,7 @@ class PlannerConfig:
     comfort_brake_mps2: float = 4.0
     comfort_accel_mps2: float = 2.0
     safety_m: float = 2.3  # body clearance to keep from a moving object (a near miss is < 2 m)
+    wait_clear_m: float = 2.0  # where to wait for it: out of its swept zone by the near-miss distance
     time_window_s: float = 1.5  # +- uncertainty on when an object is where
     horizon_s: float = 8.0
     stop_buffer_m: float = 3.0
@@ -213,6 +214,16 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
+def path_from(path: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself."""
+    if len(path) < 2:
+        return path
+    s = arc_lengths(path)
+    s0 = progress_along(path, xy)
+    rest = path[s > s0 + 1e-6]
+    return np.vstack([xy[None, :], rest]) if len(rest) else np.vstack([xy[None, :], path[-1:]])
+
+
 def path_until(path: np.ndarray, s: np.ndarray, s_end: float) -> np.ndarray:
     """``path`` (with arc lengths ``s``) cut at arc length ``s_end``; at least two points
     (a stub along the first segment when ``s_end`` is about 0)."""
@@ -276,7 +287,7 @@ class PathPlanner:
             self.path = route_ahead  # no way through: the speed planner stops short of the block
         else:
             raw = _snap_to_route(grid.cell_centers(cells[:, 0], cells[:, 1]), self.route, grid.spec.cell_m)
-            self.path = _smooth(raw)
+            self.path = _smooth_clear(raw, grid, blocked)
             self.path[0] = [pose.x_m, pose.y_m]
         return self.path
 
@@ -305,6 +316,34 @@ def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.nda
     close = dist[np.arange(len(path)), best] <= cell_m * 0.75
     out = path.copy()
     out[close] = nearest[close]
+    return out
+
+
+def _smooth_clear(raw: np.ndarray, grid: Grid, blocked: np.ndarray) -> np.ndarray:
+    """``_smooth`` where the smoothed path keeps clear of ``blocked`` cells (sampled every
+    quarter cell); near a point where it does not, the raw (snapped) points are kept: a
+    moving average cuts the corner round a parked truck into the truck's margin, and the
+    speed planner would then stop for a block the path never had."""
+    out = _smooth(raw)
+    keep_raw = np.zeros(len(raw), dtype=bool)
+    n = blocked.shape[0]
+    for _ in range(8):
+        seg = np.diff(out, axis=0)
+        steps = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (grid.spec.cell_m / 4)), 1).astype(np.int64)
+        owner = np.repeat(np.arange(len(seg)), steps)
+        frac = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps, steps)
+        rc = grid.cell_of(out[owner] + frac[:, None] * seg[owner])
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+        hit = np.zeros(len(rc), dtype=bool)
+        hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
+        bad = np.zeros(len(out), dtype=bool)
+        bad[owner[hit]] = True
+        bad[owner[hit] + 1] = True
+        bad &= ~keep_raw
+        if not bad.any():
+            break
+        keep_raw |= np.convolve(bad, np.ones(5), mode="same") > 0  # the window the average mixed in
+        out = np.where(keep_raw[:, None], raw, _smooth(raw))
     return out
 
 
@@ -350,11 +389,12 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
 
 def _body_centers(path: np.ndarray, spec: VehicleSpec) -> tuple[np.ndarray, float]:
     """(3, M, 2) the ego's rear, middle and front circle centres at each path point, and
-    their radius: three circles of the half width cover the box, corners too."""
+    their radius, the half width: exact across the body (a car in the next lane is
+    as far as it is), short of the corners by 0.37 m diagonally at most."""
     full = arc_lengths(path)
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
     centers = np.stack([point_at(path, full - body_half), path, point_at(path, full + body_half)])
-    return np.ascontiguousarray(centers, dtype=np.float64), float(np.hypot(spec.width_m / 2, spec.width_m / 2))
+    return np.ascontiguousarray(centers, dtype=np.float64), float(spec.width_m / 2)
 
 
 @njit(cache=True)
@@ -410,12 +450,18 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
                    t_now_s: float, cfg: PlannerConfig) -> float | None:
     """Where the vehicle must stop for the moving obstacles, or None.
 
-    An obstacle conflicts when it will be near some waypoint around the time the
-    vehicle gets there. The vehicle must then stay out of the obstacle's whole swept
-    zone: the answer is the first waypoint that any conflicting obstacle passes near at
-    any time within the horizon (for a crossing that is the crossing; for an oncoming
-    car in the lane the vehicle would pull into, it is where the vehicle would enter
-    that lane).
+    An obstacle conflicts when it will come within ``safety_m`` of the vehicle's body
+    at some waypoint around the time the vehicle gets there (+-``time_window_s``):
+    the vehicle cannot drive the path as planned. It must then wait out of that
+    obstacle's whole swept zone: the answer is the first waypoint at which the body
+    comes within ``wait_clear_m`` of where any conflicting obstacle passes at any time
+    within the horizon. For a crossing that is before the crossing; for an oncoming car
+    in the lane the vehicle would pull into to pass a parked truck, it is where the
+    vehicle would leave its own lane, so it waits behind the truck until the oncoming
+    lane is clear for the whole manoeuvre. A conflict with no such waypoint (a car
+    passing in the next lane) needs no stop. A vehicle already inside a zone (it
+    learnt of the car only once out in its lane) drives on out of it unless the
+    conflict itself falls before it is out: stopping there would wait in the car's way.
     """
     if not obstacles or len(path) < 2:
         return None
@@ -431,24 +477,36 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     cos_h = np.cos([o.heading_rad for o in obstacles])
     sin_h = np.sin([o.heading_rad for o in obstacles])
     centers, radius = _body_centers(path, spec)
-    reach = radius + cfg.safety_m
     offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
-    timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, reach)  # (M, O)
+    timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
     timed[s < 0.5] = False  # where the vehicle already is
     conflicting = timed.any(axis=0)  # (O,)
     if not conflicting.any():
         return None
     c = conflicting
     sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)[None, :]  # the same times at every waypoint
-    zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c], reach)  # (M, O')
-    zone[s < 0.5] = False
-    first = zone.any(axis=1) | timed[:, conflicting].any(axis=1)
-    return float(s[np.argmax(first)])
+    zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
+                 radius + cfg.wait_clear_m)  # (M, O')
+    first = zone.any(axis=1)
+    if first[0]:
+        # already inside the zone (out in the oncoming lane when the car came into view):
+        # stopping here waits in its way. Drive on out of this stretch of the zone unless
+        # the conflict falls inside it: then there is no clearing it, stop.
+        ahead = np.flatnonzero(~first)
+        leave = int(ahead[0]) if len(ahead) else len(first)
+        if timed[:leave, conflicting].any():
+            return float(s[min(1, len(s) - 1)])
+        first[:leave] = False
+    first[s < 0.5] = False
+    return float(s[np.argmax(first)]) if first.any() else None
+
+
+SHARED_HORIZON_S = 8.0  # the shared trajectory covers what others judge relevance over (spatial.HORIZON_S)
 
 
 def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_now_s: float,
-                  horizon_s: float = 6.0, step_s: float = 1.0) -> np.ndarray:
+                  horizon_s: float = SHARED_HORIZON_S, step_s: float = 1.0) -> np.ndarray:
     """Waypoints [x, y, t] every ``step_s`` along ``path``, from ``v0`` towards the cruise
     speed at ``accel``: what the control message shares (``Planner.run_step``)."""
     t = np.arange(0.0, horizon_s + 1e-9, step_s)
@@ -480,6 +538,23 @@ class Planner:
     def __post_init__(self) -> None:
         self.path_planner = PathPlanner(np.asarray(self.mission.route, dtype=float), self.mission.spec, self.config)
 
+    def intended(self, pose: Pose, speed_mps: float, t_now_s: float) -> np.ndarray:
+        """The trajectory to share before the first plan: the route ahead, at the comfort
+        acceleration towards the cruise speed."""
+        cruise = self.mission.cruise_speed_mps
+        here = np.array([[pose.x_m, pose.y_m]])
+        return trajectory_of(self._onward(here, cruise), speed_mps, cruise, self.config.comfort_accel_mps2, t_now_s)
+
+    def _onward(self, path: np.ndarray, cruise: float) -> np.ndarray:
+        """``path`` continued along the route for as far as the shared horizon reaches at
+        the cruise speed (the planned path ends ``lookahead_m`` ahead)."""
+        route = self.path_planner.route
+        s_end = progress_along(route, path[-1])
+        extra = min(cruise * SHARED_HORIZON_S, arc_lengths(route)[-1] - s_end)
+        if extra < 1.0:
+            return path
+        return np.vstack([path, point_at(route, s_end + np.arange(1.0, extra + 1e-9, 1.0))])
+
     def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, obstacles: list[Obstacle],
                  pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
         cfg, spec = self.config, self.mission.spec
@@ -489,7 +564,9 @@ class Planner:
             traj = trajectory_of(here, 0.0, 0.0, cfg.comfort_accel_mps2, t_now_s)
             return Plan(here, -spec.max_brake_mps2, traj, None, True)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
-        path = self.path_planner.plan(grid, static, pose, speed_mps)
+        # a reused path starts where the vehicle was when it was planned: distances and
+        # arrival times count from where the vehicle is now
+        path = path_from(self.path_planner.plan(grid, static, pose, speed_mps), np.array([pose.x_m, pose.y_m]))
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
         moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),
@@ -517,7 +594,7 @@ class Planner:
         # the very object the ego waited for irrelevant, so nobody sent it again, the ego's
         # copy aged out after MAX_AGE_S and it drove on into it (measured: red_light, 20
         # km/h, delta 1 s, autocast crashed where single was safe).
-        traj = trajectory_of(path, speed_mps, cruise, cfg.comfort_accel_mps2, t_now_s)
+        traj = trajectory_of(self._onward(path, cruise), speed_mps, cruise, cfg.comfort_accel_mps2, t_now_s)
         if stop_at is not None:
             # steer only along the path up to the stop point: pure pursuit looking past it
             # cuts the corner into what we may stop for (measured: an overtaking ego that

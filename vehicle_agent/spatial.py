@@ -7,10 +7,14 @@ reaches o_(i,k). ``visible_share`` is the fraction of rays across o_(i,k)'s angu
 extent that get through; an object beyond j's LiDAR range has share 0. The paper's
 boolean v is ``share >= VISIBLE_SHARE``.
 
-Relevance: j's shared trajectory (waypoints with times) and o_(i,k)'s extrapolated
-trajectory (constant velocity) are sampled over a horizon; each body is three circles
-along its heading. r = 1 when they come within ``safety_m`` at the same time (boolean,
-as in the paper's evaluation), or 1 / (1 + time to that moment) in the TTC form.
+Relevance (the paper: "an object is relevant to another vehicle if the trajectories
+of those two objects could potentially collide at some point in the future"): j's
+shared trajectory (waypoints with times) and o_(i,k)'s extrapolated trajectory
+(constant velocity) are sampled over the planner's horizon; each body is three circles
+along its heading. They could collide when j's body comes within ``safety_m`` of
+where o_(i,k) is within +-``window_s`` of the same moment: neither j's plan (it may
+brake or wait) nor o_(i,k)'s tracked velocity is exact. r = 1 then (boolean, as in
+the paper's evaluation), or 1 / (1 + time to that moment) in the TTC form.
 """
 
 from __future__ import annotations
@@ -20,9 +24,10 @@ from numba import njit
 
 VISIBLE_SHARE = 0.5
 RAYS_PER_OBJECT = 9
-HORIZON_S = 6.0
+HORIZON_S = 8.0  # the planner's horizon (PlannerConfig.horizon_s): what it would brake for
 STEP_S = 0.25
 SAFETY_M = 1.0
+WINDOW_S = 2.0  # "could collide": k's timing may be off by this much either way (the paper's delta spans +-2 s)
 
 
 @njit(cache=True)
@@ -157,9 +162,11 @@ def visibility(share: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, safety):
-    """(J, K) index of the first sample time at which j's and k's bodies (three circles
-    of radius width/2 along the heading each) come within ``safety``; -1 if never."""
+def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, safety, window):
+    """(J, K) index of the first sample time t at which j's body comes within ``safety``
+    of k's body anywhere k is between t - ``window`` and t + ``window`` (from now on);
+    -1 if never. Each body is three circles of radius width/2 along its heading; k's
+    circles sweep a segment over the window (constant velocity)."""
     J, T = pos_j.shape[0], pos_j.shape[1]
     K = obj_xy.shape[0]
     first = np.full((J, K), -1, dtype=np.int64)
@@ -169,19 +176,26 @@ def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, saf
             off_k = max(dims_k[k, 0] - dims_k[k, 1], 0.0) / 2
             reach = dims_j[j, 1] / 2 + dims_k[k, 1] / 2 + safety
             ck, sk = np.cos(head_k[k]), np.sin(head_k[k])
+            vx, vy = obj_vel[k, 0], obj_vel[k, 1]
             for t in range(T):
-                kx = obj_xy[k, 0] + obj_vel[k, 0] * dt[t]
-                ky = obj_xy[k, 1] + obj_vel[k, 1] * dt[t]
+                t_lo = max(dt[t] - window, 0.0)
+                t_hi = dt[t] + window
+                ax, ay = obj_xy[k, 0] + vx * t_lo, obj_xy[k, 1] + vy * t_lo
+                ex, ey = vx * (t_hi - t_lo), vy * (t_hi - t_lo)
+                len2 = ex * ex + ey * ey
                 jx, jy = pos_j[j, t, 0], pos_j[j, t, 1]
-                # cheap reject: centres farther apart than both half-lengths plus reach
-                if np.hypot(jx - kx, jy - ky) > off_j + off_k + reach:
+                # cheap reject: j's centre far from the whole segment k's centre sweeps
+                f = 0.0 if len2 <= 0.0 else min(max(((jx - ax) * ex + (jy - ay) * ey) / len2, 0.0), 1.0)
+                if np.hypot(jx - ax - f * ex, jy - ay - f * ey) > off_j + off_k + reach:
                     continue
                 cj, sj = np.cos(head_j[j, t]), np.sin(head_j[j, t])
                 close = False
                 for a in (-1.0, 0.0, 1.0):
+                    px, py = jx + a * off_j * cj, jy + a * off_j * sj
                     for b in (-1.0, 0.0, 1.0):
-                        dx = (jx + a * off_j * cj) - (kx + b * off_k * ck)
-                        dy = (jy + a * off_j * sj) - (ky + b * off_k * sk)
+                        bx, by = ax + b * off_k * ck, ay + b * off_k * sk
+                        f = 0.0 if len2 <= 0.0 else min(max(((px - bx) * ex + (py - by) * ey) / len2, 0.0), 1.0)
+                        dx, dy = px - bx - f * ex, py - by - f * ey
                         if dx * dx + dy * dy < reach * reach:
                             close = True
                 if close:
@@ -236,7 +250,8 @@ def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) ->
 
 def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
               obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
-              step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None) -> np.ndarray:
+              step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None,
+              window_s: float = WINDOW_S) -> np.ndarray:
     """(J, K) relevance of each object to each vehicle's trajectory.
 
     ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s]; ``dims_j`` (J, 2) length,
@@ -255,7 +270,8 @@ def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.nda
         obj_heading = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)
     head_k = np.asarray(obj_heading, dtype=np.float64)
     first = _first_close(pos_j, head_j, dims_j.astype(np.float64), obj_xy.astype(np.float64),
-                         obj_vel.astype(np.float64), head_k, obj_dims.astype(np.float64), times - t_now_s, safety_m)
+                         obj_vel.astype(np.float64), head_k, obj_dims.astype(np.float64), times - t_now_s, safety_m,
+                         window_s)
     hit = first >= 0
     if mode == "bool":
         return hit.astype(np.float32)

@@ -1,13 +1,27 @@
 """Tracking objects across ticks in the world frame (the agent knows its pose exactly).
 
-Nearest-neighbour association with gating on the predicted position, then an
-alpha-beta filter on the centroid for velocity. A partial view makes a centroid move
-as the visible faces change while the observer drives by, which would give a parked
-truck a phantom velocity. So a track counts as moving only if it has left most of the
-world cells it occupied ``MOTION_WINDOW`` ticks ago (the cells are on the world
-lattice, so the observer's own motion does not matter) and its filtered speed is
-above ``STILL_MPS``; otherwise its velocity is zero. Ids are stable for as long as a
-track is matched; a track unmatched for ``max_missed`` ticks is dropped.
+Each track is a constant-velocity Kalman filter on the object's centroid (state
+position and velocity; the x and y axes share one 2x2 covariance, since the noise is
+isotropic). A new track starts with its position measured and its velocity unknown
+(``INIT_SPEED_SIGMA_MPS``): after two frames the velocity is the finite difference,
+after three it is filtered; a car moving 1 m per 0.1 s is estimated at 10 m/s +-1 by
+its third frame. Association is greedy nearest-first on the normalised innovation
+(Mahalanobis distance), gated at the chi-square 99% bound of two degrees of freedom,
+but never narrower than ``GATE_MIN_M`` (a centroid jumps when the visible faces change)
+nor wider than ``GATE_MAX_M``; a detection outside every gate starts a new track.
+
+A partial view makes a centroid move as the visible faces change while the observer
+drives by, which would give a parked truck a phantom velocity. So a track counts as
+moving only when its cells confirm the filter's velocity: the cells it occupied
+``lag`` ticks ago, shifted by the filtered velocity times the elapsed time, explain
+its cells now better than the same cells unshifted (at least ``EVIDENCE_CELLS`` and
+``EVIDENCE_SHARE`` of them more). The lag is the shortest (from ``EVIDENCE_LAG_MIN``
+ticks, 0.2 s, so by an object's third frame) over which the shift is at least
+``EVIDENCE_SHIFT_M``, two cells: a change of view moves a centroid, but it does not
+carry the object's surfaces along. Once moving, a track stays moving while its
+filtered speed is at least ``STILL_MPS``; otherwise its velocity is zero. Ids are
+stable for as long as a track is matched; a track unmatched for ``max_missed`` ticks
+is dropped.
 """
 
 from __future__ import annotations
@@ -16,26 +30,42 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from vehicle_agent.perception import DetectedObject
 
-GATE_M = 2.5
-ALPHA, BETA = 0.6, 0.25
+MEAS_SIGMA_M = 0.3  # centroid noise per axis
+ACCEL_SIGMA_MPS2 = 3.0  # white-acceleration process noise
+INIT_SPEED_SIGMA_MPS = 15.0  # a new track's velocity: unknown, up to ~50 km/h per axis at 1 sigma
+GATE_CHI2 = 9.21  # chi-square, 2 degrees of freedom, 99%
+GATE_MIN_M = 2.5  # a car's centroid jumps by up to half its length when its side comes into view
+GATE_MAX_M = 4.0
 STILL_MPS = 1.0
-MOTION_WINDOW = 10  # ticks: an object is moving only if it left most of its cells of 1 s ago
-STATIC_OVERLAP = 0.5
+EVIDENCE_LAG_MIN = 2  # ticks: motion is confirmed by an object's third frame at the earliest
+EVIDENCE_SHIFT_M = 0.6  # the filter's shift over the lag tested: three voxels
+VOXEL_M = 0.2  # a point persists when the other frame has a point in its voxel or a neighbouring one
+EVIDENCE_MARGIN = 0.15  # moved, the old points persist in this larger share than unmoved...
+EVIDENCE_MIN_SHARE = 0.5  # ...and in at least this share
+EVIDENCE_MIN_POINTS = 30  # of the old detection
+_OFFSETS = VOXEL_M * np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3)], dtype=float)  # around the filter's shift
+REGISTERED_SIGMA_MPS = 1.0  # a voxel over 0.2 s
+REGISTERED_POINTS = 400  # at most about this many old points are registered (every k-th)
+HISTORY = 10  # ticks of points kept per track: a mover at STILL_MPS shifts 1 m in 1 s
 
 
 @dataclass(slots=True)
 class Track:
     track_id: int
     xy: np.ndarray  # filtered centroid, world frame
-    velocity: np.ndarray  # m/s, world frame
+    velocity: np.ndarray  # m/s, world frame: the filtered velocity once moving, else zero
     t_sim_s: float
     detection: DetectedObject
     hits: int = 1
     missed: int = 0
     filtered_velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    cov: np.ndarray = field(default_factory=lambda: np.diag([MEAS_SIGMA_M**2, INIT_SPEED_SIGMA_MPS**2]))
+    moving: bool = False
+    points_history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # (t, points) when matched
 
     @property
     def speed_mps(self) -> float:
@@ -48,7 +78,22 @@ class Track:
         return self.detection.yaw_rad
 
     def predict(self, t_sim_s: float) -> np.ndarray:
-        return self.xy + self.velocity * (t_sim_s - self.t_sim_s)
+        """Where the filter expects the centroid at ``t_sim_s``."""
+        return self.xy + self.filtered_velocity * (t_sim_s - self.t_sim_s)
+
+    def innovation_var(self, t_sim_s: float) -> float:
+        """Per-axis variance of the predicted measurement at ``t_sim_s`` (S = H P H^T + R)."""
+        return float(_predict_cov(self.cov, t_sim_s - self.t_sim_s)[0, 0] + MEAS_SIGMA_M**2)
+
+
+def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
+    """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration
+    (written out: the 2x2 products cost more in numpy calls than in arithmetic)."""
+    q = ACCEL_SIGMA_MPS2**2
+    p00, p01, p11 = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    a = p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4
+    b = p01 + dt * p11 + q * dt**3 / 2
+    return np.array([[a, b], [b, p11 + q * dt * dt]])
 
 
 @dataclass
@@ -57,21 +102,15 @@ class Tracker:
     tracks: list[Track] = field(default_factory=list)
     _next_id: int = 0
 
-    _history: deque = field(default_factory=lambda: deque(maxlen=MOTION_WINDOW + 1))
-
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
         """Associate this tick's detections; returns the tracks seen this tick, by id."""
-        ids = [_cell_ids(d.cells) for d in detections]
-        all_ids = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
-        self._history.append(np.unique(all_ids))  # sorted: membership is a binary search
-        past = self._history[0] if len(self._history) > MOTION_WINDOW else None
-        stayed = _share_in(all_ids, np.array([len(i) for i in ids], dtype=np.int64), past)
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
         predicted = np.array([tr.predict(t_sim_s) for tr in self.tracks]).reshape(-1, 2)
-        pairs = _associate(predicted, centroids, GATE_M)
+        variance = np.array([tr.innovation_var(t_sim_s) for tr in self.tracks])
+        pairs = associate(predicted, variance, centroids)
         matched_tracks, matched_dets = set(), set()
         for ti, di in pairs:
-            self._correct(self.tracks[ti], detections[di], t_sim_s, None if stayed is None else stayed[di])
+            self._correct(self.tracks[ti], detections[di], t_sim_s)
             matched_tracks.add(ti)
             matched_dets.add(di)
         for ti, tr in enumerate(self.tracks):
@@ -80,54 +119,119 @@ class Tracker:
         self.tracks = [tr for tr in self.tracks if tr.missed <= self.max_missed]
         for di, det in enumerate(detections):
             if di not in matched_dets:
-                self.tracks.append(Track(self._next_id, det.centroid[:2].copy(), np.zeros(2), t_sim_s, det))
+                tr = Track(self._next_id, det.centroid[:2].copy(), np.zeros(2), t_sim_s, det)
+                tr.points_history.append((t_sim_s, det.points_world))
+                self.tracks.append(tr)
                 self._next_id += 1
         return sorted((tr for tr in self.tracks if tr.missed == 0), key=lambda tr: tr.track_id)
 
-    @staticmethod
-    def _correct(tr: Track, det: DetectedObject, t_sim_s: float, stayed: float | None) -> None:
-        """``stayed``: the share of the detection's cells it also occupied MOTION_WINDOW ago."""
+    def _correct(self, tr: Track, det: DetectedObject, t_sim_s: float) -> None:
+        """Kalman update with the detection's centroid, then the motion test on its cells."""
         dt = max(t_sim_s - tr.t_sim_s, 1e-3)
+        cov = _predict_cov(tr.cov, dt)
         predicted = tr.xy + tr.filtered_velocity * dt
         residual = det.centroid[:2] - predicted
-        tr.xy = predicted + ALPHA * residual
-        tr.filtered_velocity = tr.filtered_velocity + (BETA / dt) * residual
-        moved = stayed is not None and stayed < STATIC_OVERLAP
-        if moved and np.hypot(*tr.filtered_velocity) >= STILL_MPS:
-            tr.velocity = tr.filtered_velocity.copy()
-        else:
-            tr.velocity = np.zeros(2)
+        s = cov[0, 0] + MEAS_SIGMA_M**2
+        gain = cov[:, 0] / s  # K = P H^T S^-1
+        tr.xy = predicted + gain[0] * residual
+        tr.filtered_velocity = tr.filtered_velocity + gain[1] * residual
+        tr.cov = cov - np.outer(gain, cov[0, :])  # (I - K H) P
+        registered = None
+        if np.hypot(*tr.filtered_velocity) >= STILL_MPS:
+            registered = registered_velocity(tr.points_history, det.points_world, t_sim_s, tr.filtered_velocity)
+        if registered is not None:  # a velocity measurement too: H = [0, 1] per axis
+            s_v = tr.cov[1, 1] + REGISTERED_SIGMA_MPS**2
+            gain = tr.cov[:, 1] / s_v
+            residual = registered - tr.filtered_velocity
+            tr.xy = tr.xy + gain[0] * residual
+            tr.filtered_velocity = tr.filtered_velocity + gain[1] * residual
+            tr.cov = tr.cov - np.outer(gain, tr.cov[1, :])
+        tr.moving = np.hypot(*tr.filtered_velocity) >= STILL_MPS and (tr.moving or registered is not None)
+        tr.velocity = tr.filtered_velocity.copy() if tr.moving else np.zeros(2)
         tr.t_sim_s = t_sim_s
         tr.detection = det
+        tr.points_history.append((t_sim_s, det.points_world))
         tr.hits += 1
         tr.missed = 0
 
 
-def _cell_ids(cells: np.ndarray) -> np.ndarray:
-    """One int64 per global lattice cell (i, j)."""
-    return cells[:, 0].astype(np.int64) * 1_000_003 + cells[:, 1].astype(np.int64)
+def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.ndarray) -> np.ndarray | None:
+    """The velocity that carries the points of ``lag`` matches ago onto the points
+    ``now``, if moving them explains ``now`` better than leaving them (None otherwise).
 
-
-def _share_in(ids: np.ndarray, counts: np.ndarray, past: np.ndarray | None) -> np.ndarray | None:
-    """Per detection (``counts`` consecutive ``ids`` each), the share of its cells in the
-    sorted ``past``; None without a past."""
-    if past is None:
+    A parked object seen from a new place shows new faces, but its old faces stay where
+    they were; a mover carries them along. The moved hypothesis takes the best shift
+    within two voxels per axis of the filter's (the filter follows a centroid, which
+    also moves as the visible faces change); it must keep EVIDENCE_MIN_SHARE of the old
+    points and EVIDENCE_MARGIN more than no shift at all. ``history`` holds (t, world
+    points) per past match, oldest first; the lag is the shortest of at least
+    EVIDENCE_LAG_MIN matches over which the filter's shift reaches EVIDENCE_SHIFT_M.
+    """
+    speed = float(np.hypot(*velocity))
+    now = np.ascontiguousarray(now, dtype=np.float64)
+    for back in range(EVIDENCE_LAG_MIN, len(history) + 1):
+        t_old, old = history[-back]
+        age = t_sim_s - t_old
+        if speed * age < EVIDENCE_SHIFT_M:
+            continue
+        if len(old) < EVIDENCE_MIN_POINTS:  # too sparse (far away) to tell a change of view from a move
+            return None
+        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)], dtype=np.float64)
+        shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
+        shares = _persisting(old, now, shifts, VOXEL_M)
+        best = int(np.argmax(shares[1:])) + 1
+        if shares[best] >= EVIDENCE_MIN_SHARE and shares[best] - shares[0] >= EVIDENCE_MARGIN:
+            return shifts[best] / age
         return None
-    if len(past) == 0 or len(ids) == 0:
-        return np.zeros(len(counts))
-    pos = np.minimum(np.searchsorted(past, ids), len(past) - 1)
-    hit = past[pos] == ids
-    owner = np.repeat(np.arange(len(counts)), counts)
-    return np.bincount(owner, weights=hit, minlength=len(counts)) / np.maximum(counts, 1)
+    return None
 
 
-def _associate(a: np.ndarray, b: np.ndarray, gate: float) -> list[tuple[int, int]]:
-    """Greedy nearest pairs within ``gate``, closest first (ties by index)."""
-    if len(a) == 0 or len(b) == 0:
+@njit(cache=True)
+def _persisting(old, now, shifts, voxel):
+    """(S,) per shift (dx, dy): the share of the ``old`` points, shifted, that have a
+    point of ``now`` in their voxel or a neighbouring one (3-D, edge ``voxel``)."""
+    n_shift = shifts.shape[0]
+    out = np.zeros(n_shift)
+    if old.shape[0] == 0 or now.shape[0] == 0:
+        return out
+    lo = np.empty(3, dtype=np.int64)
+    hi = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        lo[a] = np.int64(np.floor(now[:, a].min() / voxel)) - 1
+        hi[a] = np.int64(np.floor(now[:, a].max() / voxel)) + 1
+    nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
+    occ = np.zeros((nx, ny, nz), dtype=np.bool_)
+    for p in range(now.shape[0]):
+        i = np.int64(np.floor(now[p, 0] / voxel)) - lo[0]
+        j = np.int64(np.floor(now[p, 1] / voxel)) - lo[1]
+        k = np.int64(np.floor(now[p, 2] / voxel)) - lo[2]
+        for a in range(-1, 2):
+            for b in range(-1, 2):
+                for c in range(-1, 2):
+                    occ[i + a, j + b, k + c] = True
+    for s in range(n_shift):
+        hit = 0
+        for p in range(old.shape[0]):
+            i = np.int64(np.floor((old[p, 0] + shifts[s, 0]) / voxel)) - lo[0]
+            j = np.int64(np.floor((old[p, 1] + shifts[s, 1]) / voxel)) - lo[1]
+            k = np.int64(np.floor(old[p, 2] / voxel)) - lo[2]
+            if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz and occ[i, j, k]:
+                hit += 1
+        out[s] = hit / old.shape[0]
+    return out
+
+
+def associate(predicted: np.ndarray, variance: np.ndarray, measured: np.ndarray) -> list[tuple[int, int]]:
+    """Greedy pairs (track, detection), smallest Mahalanobis distance first (ties by
+    index), each within its track's gate: d^2 = |z - z_pred|^2 / S <= GATE_CHI2, the
+    gate's radius clipped to [GATE_MIN_M, GATE_MAX_M]."""
+    if len(predicted) == 0 or len(measured) == 0:
         return []
-    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
-    ii, jj = np.nonzero(d <= gate)
-    order = np.lexsort((jj, ii, d[ii, jj]))
+    dist = np.linalg.norm(predicted[:, None, :] - measured[None, :, :], axis=2)
+    radius = np.clip(np.sqrt(GATE_CHI2 * variance), GATE_MIN_M, GATE_MAX_M)
+    d2 = dist**2 / np.maximum(variance, 1e-9)[:, None]
+    ii, jj = np.nonzero(dist <= radius[:, None])
+    order = np.lexsort((jj, ii, d2[ii, jj]))
     used_a, used_b, pairs = set(), set(), []
     for k in order:
         i, j = int(ii[k]), int(jj[k])

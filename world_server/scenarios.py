@@ -1,10 +1,25 @@
 """The paper's three scenarios, as validated parameters plus a builder per scenario.
 
 Every scenario has an *ego* (connected, vid 0), an *occluder* truck (connected,
-vid 1), a passive *collider* (no V2V, driven by the world) and background connected
-vehicles (vids 2..N-1) placed on lanes within R/2 of the scene centre. The ego and the
-collider drive routes that cross at a *conflict point*; the collider reaches it
-``delta_s`` seconds after the ego (negative: before) if neither reacts.
+vid 1), a passive *collider* (no V2V, driven by the world, vid N) and background
+connected vehicles (vids 2..N-1) placed on lanes within R/2 of the scene centre. The
+ego and the collider drive routes that cross at a *conflict point*; the collider
+reaches it ``delta_s`` seconds after the ego (negative: before) if neither reacts.
+A scenario may add more unconnected actors after the collider (vids N+1...): parked
+trucks (``parked``) and the traffic that follows the collider (``traffic``), as the
+paper's authors built their scenarios (docs/scenarios.md):
+
+- overtaking: a box truck parked in the ego's lane, shifted 0.8 m toward the centre
+  line; cars follow the collider in the oncoming lane (a car enters whenever the last
+  is 40 m on); the collider and its followers brake fully for a vehicle within three
+  of their lengths ahead.
+- left_turn: the box truck waits inside the junction, 3.5 m past its stop line and
+  yawed 30 degrees toward its turn; cars follow the collider (a car enters whenever the
+  last is 20 m on); the collider and its followers do not brake for others.
+- red_light: the connected box truck waits at the junction's entry in the ego's left
+  lane, behind it a row of parked, unconnected box trucks one every 6 m back to 3 m
+  past the ego's start; the collider runs the red from the ego's left and holds its
+  speed.
 
 Background vehicles are queued (stationary) on approach lanes and parking strips, or
 drive away from the centre on exit lanes; a candidate is kept only if, driven at its
@@ -39,15 +54,28 @@ SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered 
 DOMAIN_RADIUS_M = 85.0  # R/2 with R ~ 170 m (urban LTE-Direct), paper section 4.1
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
-LEFT_TURNER_INTO_BOX_M = 4.0  # how far the waiting left-turn truck has pulled past its stop line
-TRUCK_OFFSET_M = 0.4  # the broken-down truck stands this far toward the centreline
+LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
+LEFT_TURNER_YAW_DEG = 30.0  # ... yawed this much toward its turn (the authors: 5 m in, 30 deg; 5 m would
+# touch the ego's turn in our 16 m box, 3.5 m clears it by 0.7 m)
+TRUCK_OFFSET_M = 0.8  # the parked truck stands this far toward the centre line "for more occlusion"
+RED_LIGHT_TRUCK_INTO_BOX_M = 0.5  # the connected truck's front, past the ego's left lane's stop line
+PARKED_ROW_PITCH_M = 6.0  # the red-light row: one parked truck every 6 m ...
+PARKED_ROW_FROM_M = 3.0  # ... from 3 m past the ego's start up to the junction
+OVERTAKE_TRAFFIC_GAP_M = 40.0  # a car enters behind the overtaking collider when the last one is this far on
+LEFT_TURN_TRAFFIC_GAP_M = 20.0  # ... behind the left-turn collider
+OVERTAKE_EGO_KMH, LEFT_TURN_EGO_KMH, RED_LIGHT_EGO_KMH = 20.0, 30.0, 40.0  # the authors' evaluation speeds
+OVERTAKE_BRAKE_LENGTHS = 3.0  # the oncoming traffic brakes fully for a vehicle this many own lengths ahead
+OVERTAKE_RAMP_M = (12.0, 4.0)  # the ego's route leaves its lane this far behind the truck's centre, is
+# in the oncoming lane this far behind it (and mirrored past it)
 BACKGROUND_SPEED_MPS = 12.0
 BACKGROUND_SPACING_M = 9.5
 TRUCK_SHARE = 0.15
 
 CAR = VehicleSpec(4.5, 1.8, 1.5, 2.7, 3.0, 7.5, 0.6)
 TRUCK = VehicleSpec(9.0, 2.5, 3.5, 5.5, 2.0, 6.5, 0.6)
-MOUNT_HEIGHT_M = {"car": 1.9, "truck": 3.8}
+BOX_TRUCK = VehicleSpec(5.2, 2.5, 2.6, 3.4, 2.0, 6.5, 0.6)  # the scenarios' occluders: a 5.2 m box truck
+SPECS = {"car": CAR, "truck": TRUCK, "box_truck": BOX_TRUCK}
+MOUNT_HEIGHT_M = {"car": 1.9, "truck": 3.8, "box_truck": 2.9}
 
 
 class ScenarioError(ValueError):
@@ -115,18 +143,23 @@ def load_scenario_file(path: str | Path) -> ScenarioParams:
 
 @dataclass(slots=True)
 class Actor:
-    """A vehicle at t = 0: its route starts at its position; speed 0 means it waits."""
+    """A vehicle at t = 0: its route starts at its position; speed 0 means it waits.
+
+    ``brake_lengths`` is for the world-driven (unconnected) movers: they brake fully
+    while a vehicle is within that many of their own lengths ahead; 0 never brakes.
+    """
 
     vid: int
-    role: str  # ego | occluder | collider | background
-    kind: str  # car | truck
+    role: str  # ego | occluder | collider | background | parked | traffic
+    kind: str  # car | truck | box_truck
     route: np.ndarray
     speed_mps: float
     connected: bool
+    brake_lengths: float = 0.0
 
     @property
     def spec(self) -> VehicleSpec:
-        return TRUCK if self.kind == "truck" else CAR
+        return SPECS[self.kind]
 
     @property
     def mount_height_m(self) -> float:
@@ -159,6 +192,10 @@ class Scenario:
     def connected(self) -> list[Actor]:
         return [a for a in self.actors if a.connected]
 
+    def passive(self) -> list[Actor]:
+        """The world-driven vehicles: the collider, parked trucks, traffic."""
+        return [a for a in self.actors if not a.connected]
+
     def arrival_s(self, actor: Actor) -> float:
         """When ``actor`` reaches the conflict point driving its route at its speed."""
         s = project_s(actor.route, self.conflict_xy)
@@ -189,7 +226,8 @@ def register_scenario(name: str) -> Callable[[Builder], Builder]:
 
     A builder returns a ``Scenario`` with the ego (vid 0, connected), the occluder
     (vid 1, connected), the collider (vid ``params.vehicles``, not connected, its route
-    crossing the ego's at ``conflict_xy``) and, optionally, the lights; ``build`` adds
+    crossing the ego's at ``conflict_xy``), optionally more unconnected actors (vids
+    ``params.vehicles + 1`` on, in order) and the lights; ``build`` adds
     ``params.vehicles - 2`` background vehicles around ``conflict_xy``.
     """
     def add(builder: Builder) -> Builder:
@@ -233,6 +271,11 @@ def _check_roles(scenario: Scenario, p: ScenarioParams) -> None:
         if actor is None or actor.vid != vid or actor.connected != connected:
             raise ScenarioError(f"scenario: {p.scenario!r} must place the {role} as vid {vid}"
                                 f"{'' if connected else ', not connected'}")
+    extra = sorted(a.vid for a in scenario.actors if a.role not in want)
+    if extra != list(range(p.vehicles + 1, p.vehicles + 1 + len(extra))) or \
+            any(a.connected for a in scenario.actors if a.role not in want):
+        raise ScenarioError(f"scenario: {p.scenario!r} must place its other actors unconnected, "
+                            f"as vids {p.vehicles + 1} on")
 
 
 def _speeds(p: ScenarioParams, ego_default_kmh: float) -> tuple[float, float]:
@@ -256,50 +299,96 @@ def crossing_actors(p: ScenarioParams, m: RoadMap, ego_route: np.ndarray, collid
     return ego, collider, conflict
 
 
-def waiting_truck(route: np.ndarray, front_s: float) -> Actor:
-    """A stationary truck whose front bumper is at arc length ``front_s`` of ``route``."""
-    return Actor(1, "occluder", "truck", _trim(route, front_s - TRUCK.length_m / 2), 0.0, True)
+def waiting_truck(route: np.ndarray, front_s: float, spec: VehicleSpec = BOX_TRUCK) -> Actor:
+    """A stationary connected truck whose front bumper is at arc length ``front_s`` of ``route``."""
+    kind = next(k for k, v in SPECS.items() if v == spec)
+    return Actor(1, "occluder", kind, _trim(route, front_s - spec.length_m / 2), 0.0, True)
+
+
+def left_turner(m: RoadMap, lane_id: str, turn_route: np.ndarray) -> Actor:
+    """The connected truck waiting inside the junction to turn left: on its lane's line,
+    ``LEFT_TURNER_INTO_BOX_M`` past the stop line, yawed toward its turn."""
+    lane = m.lanes[lane_id]
+    centre, yaw = point_at(lane.centerline, lane.stop_s_m)
+    centre = centre + LEFT_TURNER_INTO_BOX_M * np.array([np.cos(yaw), np.sin(yaw)])
+    yaw = float(yaw) + np.radians(LEFT_TURNER_YAW_DEG)  # left is counter-clockwise
+    ahead = centre + 2.0 * np.array([np.cos(yaw), np.sin(yaw)])
+    rest = _trim(turn_route, project_s(turn_route, ahead) + 2.0)
+    return Actor(1, "occluder", "box_truck", np.vstack([centre, ahead, rest]), 0.0, True)
+
+
+def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m: float, first_vid: int,
+              brake_lengths: float) -> list[Actor]:
+    """Cars behind the collider on its route, at its speed, back to the road's start.
+
+    The authors' code spawns a car, at rest, at the collider's start whenever no car is
+    within ``gap_m`` of it, and drives it up to the collider's speed. Once at speed, each
+    car of that stream is ``gap_m + v^2 / 2a`` behind the one before (the distance it lost
+    accelerating at a car's ``max_accel_mps2``); we place the stream at that spacing at
+    t = 0, so each car is where the stream puts it from the moment it is up to speed.
+    """
+    v = collider.speed_mps
+    spacing = gap_m + v * v / (2.0 * CAR.max_accel_mps2)
+    s_col = project_s(full_route, collider.route[0])
+    out = []
+    for k, s in enumerate(np.arange(s_col - spacing, 0.0, -spacing)):
+        out.append(Actor(first_vid + k, "traffic", "car", _trim(full_route, float(s)), v, False, brake_lengths))
+    return out
 
 
 @register_scenario("left_turn")
 def _left_turn(p: ScenarioParams) -> Scenario:
-    """Ego turns left from the south; the opposite left-turning truck hides the oncoming collider."""
+    """Ego turns left from the south; the opposite left-turning truck, waiting inside the
+    junction, hides the oncoming collider and the cars that follow it."""
     m = intersection()
+    collider_route = m.route("N.in.1", "N.in.1>S", "S.out.1")
     ego, collider, conflict = crossing_actors(
-        p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), m.route("N.in.1", "N.in.1>S", "S.out.1"), 22.0)
-    truck_route = m.route("N.in.0", "N.in.0>E", "E.out.0")
-    # it has pulled into the box to wait for a gap, as left-turners do
-    truck = waiting_truck(truck_route, m.lanes["N.in.0"].stop_s_m + LEFT_TURNER_INTO_BOX_M)
+        p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), collider_route, LEFT_TURN_EGO_KMH)
+    truck = left_turner(m, "N.in.0", m.route("N.in.0", "N.in.0>E", "E.out.0"))
+    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
-    return Scenario(p, m, [ego, truck, collider], conflict, lights)
+    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
 
 
 @register_scenario("red_light")
 def _red_light(p: ScenarioParams) -> Scenario:
-    """Ego goes straight north on green; a truck waiting to turn left hides a red-light runner."""
+    """Ego goes straight north on green; a red-light runner comes from its left, hidden by a
+    row of parked trucks in the ego's left lane and the truck waiting at the junction."""
     m = intersection()
     ego, collider, conflict = crossing_actors(
-        p, m, m.route("S.in.1", "S.in.1>N", "N.out.1"), m.route("W.in.1", "W.in.1>E", "E.out.1"), 29.0)
+        p, m, m.route("S.in.1", "S.in.1>N", "N.out.1"), m.route("W.in.1", "W.in.1>E", "E.out.1"), RED_LIGHT_EGO_KMH)
     truck_route = m.route("S.in.0", "S.in.0>W", "W.out.0")
-    truck = waiting_truck(truck_route, m.lanes["S.in.0"].stop_s_m - 0.5)
+    stop = m.lanes["S.in.0"].stop_s_m
+    truck = waiting_truck(truck_route, stop + RED_LIGHT_TRUCK_INTO_BOX_M)
+    lane = m.lanes["S.in.0"].centerline
+    s_truck = stop + RED_LIGHT_TRUCK_INTO_BOX_M - BOX_TRUCK.length_m / 2
+    s_first = project_s(lane, ego.route[0]) + PARKED_ROW_FROM_M
+    row = []
+    for k, s in enumerate(np.arange(s_truck - PARKED_ROW_PITCH_M, s_first - 1e-9, -PARKED_ROW_PITCH_M)):
+        row.append(Actor(p.vehicles + 1 + k, "parked", "box_truck", _trim(lane, float(s)), 0.0, False))
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
-    return Scenario(p, m, [ego, truck, collider], conflict, lights)
+    return Scenario(p, m, [ego, truck, collider, *row], conflict, lights)
 
 
 @register_scenario("overtaking")
 def _overtaking(p: ScenarioParams) -> Scenario:
-    """A truck stopped in the ego's lane; the ego passes in the oncoming lane, where the collider comes."""
+    """A truck parked in the ego's lane toward the centre line; the ego passes in the
+    oncoming lane, where the collider comes with more cars behind it."""
     m = straight_road()
     y_e, y_w = m.lanes["E"].centerline[0, 1], m.lanes["W"].centerline[0, 1]
     L = m.lanes["E"].centerline[-1, 0]
-    ego_route = np.array([[-L, y_e], [-16.0, y_e], [-8.0, y_w], [8.0, y_w], [16.0, y_e], [L, y_e]])
-    # the head-on meeting point: the middle of the ego's stretch in the oncoming lane
+    far, near = OVERTAKE_RAMP_M
+    ego_route = np.array([[-L, y_e], [-far, y_e], [-near, y_w], [near, y_w], [far, y_e], [L, y_e]])
+    # the head-on meeting point: the middle of the ego's stretch in the oncoming lane, beside the truck
+    collider_route = m.lanes["W"].centerline
     ego, collider, conflict = crossing_actors(
-        p, m, ego_route, m.lanes["W"].centerline, 22.0, conflict=np.array([0.0, y_w]),
-        lead_s=OVERTAKE_LEAD_TIME_S)
+        p, m, ego_route, collider_route, OVERTAKE_EGO_KMH, conflict=np.array([0.0, y_w]), lead_s=OVERTAKE_LEAD_TIME_S)
+    collider.brake_lengths = OVERTAKE_BRAKE_LENGTHS
     truck_lane = m.lanes["E"].centerline + np.array([0.0, TRUCK_OFFSET_M])
-    truck = waiting_truck(truck_lane, L + TRUCK.length_m / 2)
-    return Scenario(p, m, [ego, truck, collider], conflict, {})
+    truck = waiting_truck(truck_lane, L + BOX_TRUCK.length_m / 2)
+    traffic = followers(p, collider, collider_route, OVERTAKE_TRAFFIC_GAP_M, p.vehicles + 1,
+                        OVERTAKE_BRAKE_LENGTHS)
+    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, {})
 
 
 # ------------------------------------------------------------------------ background

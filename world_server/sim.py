@@ -1,9 +1,10 @@
 """The simulation core of the world server, with no I/O: sense, then step.
 
 One decision interval: ``sense`` casts every live vehicle's LiDAR (and the collider's,
-which its built-in driver uses); ``step`` applies the agents' commands, drives the
-collider, and advances physics by the decision interval in fixed physics steps while
-the judge watches. Deterministic for a scenario and seed.
+when its built-in driver brakes for what it sees); ``step`` applies the agents'
+commands, drives the passive vehicles (the collider and the traffic behind it; parked
+ones hold still), and advances physics by the decision interval in fixed physics steps
+while the judge watches. Deterministic for a scenario and seed.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class Simulation:
         self.tick = 0
         self._collider_view: Sensed | None = None
         self._collider_in_ego_view = 0
+        self._passive = self.scenario.passive()
 
     @property
     def t_sim_s(self) -> float:
@@ -77,15 +79,18 @@ class Simulation:
         return [LightState(i, s) for i, s in sorted(self.scenario.lights.items())]
 
     def sense(self, vids: Iterable[int]) -> dict[int, Sensed]:
-        """LiDAR scans of ``vids`` plus the collider's (kept for its driver)."""
+        """LiDAR scans of ``vids`` plus the collider's, when its driver needs it."""
         return {v.vid: v for v in self.sense_each(vids)}
 
     def sense_each(self, vids: Iterable[int]) -> Iterator[Sensed]:
         """``sense``, one vehicle at a time as each scan is cast, in the order of ``vids``
         (the world publishes each scan at once, so agents start while it casts the rest).
-        The collider's scan, for its driver, is cast last; consume the whole iterator."""
+        The collider's scan, for its driver (only if it brakes for anything), is cast
+        last; consume the whole iterator."""
         col = self.scenario.collider.vid
-        wanted = [v for v in dict.fromkeys(vids) if v != col] + [col]
+        wanted = [v for v in dict.fromkeys(vids) if v != col]
+        if self.scenario.collider.brake_lengths > 0:
+            wanted.append(col)
         boxes = np.vstack([self.physics.boxes(self.heights_m), self.scenario.roadmap.buildings])
         poses = self.physics.poses()
         prepared = lidar.prepare_boxes(boxes)
@@ -123,12 +128,7 @@ class Simulation:
                 phys.command(vid, *commands[vid])
             else:
                 phys.command(vid, -phys.max_brake[vid], 0.0)
-        col = self.scenario.collider
-        if self._collider_view is None:
-            self.sense([])
-        phys.command(col.vid, *driver.passive_command(
-            phys.x[col.vid], phys.y[col.vid], phys.yaw[col.vid], phys.v[col.vid], col.speed_mps, col.route,
-            col.spec, self._collider_view.points, col.mount_height_m))
+        self._drive_passive()
         fused = None if ego_fused_xy is None else self.judge.collider_points_in(phys, ego_fused_xy)
         self.judge.observe_tick(phys, self._collider_in_ego_view, fused)
         for _ in range(self.substeps):
@@ -136,6 +136,27 @@ class Simulation:
             self.judge.observe_step(phys)
         self.tick += 1
         self._collider_view = None
+
+    def _drive_passive(self) -> None:
+        """Commands for the world-driven vehicles (driver.py)."""
+        phys, col = self.physics, self.scenario.collider
+        if col.brake_lengths > 0 and self._collider_view is None:
+            self.sense([])
+        outline = owner = None
+        for a in self._passive:
+            i = a.vid
+            horizon = max(a.brake_lengths * a.spec.length_m, 1.0)
+            if a.speed_mps <= 0.0 or a.brake_lengths <= 0.0:
+                gap = np.inf
+            elif a is col:
+                gap = driver.free_distance_ahead(self._collider_view.points, a.spec, a.mount_height_m, horizon)
+            else:
+                if outline is None:
+                    outline, owner = driver.outline_points(phys.boxes(self.heights_m))
+                gap = driver.free_distance_to_boxes(phys.x[i], phys.y[i], phys.yaw[i], a.spec, outline, owner, i,
+                                                    horizon)
+            phys.command(i, *driver.passive_command(phys.x[i], phys.y[i], phys.yaw[i], phys.v[i], a.speed_mps,
+                                                    a.route, a.spec, gap, a.brake_lengths))
 
     @property
     def done(self) -> bool:

@@ -1,0 +1,152 @@
+"""The tracker: a constant-velocity Kalman filter with gating, and motion judged from
+free space. Filter cases are derived by hand and against a full 4-state reference
+filter; the motion cases run on the world's LiDAR."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.messages import LidarConfig, Pose
+from vehicle_agent.frames import sensor_to_world
+from vehicle_agent.perception import DetectedObject, DrivableRaster, GridSpec, build_grid, extract_objects
+from vehicle_agent.tracking import (ACCEL_SIGMA_MPS2, INIT_SPEED_SIGMA_MPS, MEAS_SIGMA_M, Tracker, _persisting,
+                                   associate)
+from world_server import lidar
+
+DT = 0.1
+OPEN_FIELD = [np.array([[-200.0, -200.0], [200.0, -200.0], [200.0, 200.0], [-200.0, 200.0]])]
+
+
+def _det(x: float, y: float) -> DetectedObject:
+    """A 2 x 1 m detection centred at (x, y) (cells on the 0.5 m lattice)."""
+    i, j = np.meshgrid(np.arange(4) + int(np.floor((x - 1) / 0.5)), np.arange(2) + int(np.floor((y - 0.5) / 0.5)))
+    cells = np.stack([i.ravel(), j.ravel()], axis=1).astype(np.int64)
+    return DetectedObject(np.zeros((0, 3), np.float32), cells, np.array([x, y, 0.7]), 0.0, 2.0, 1.0)
+
+
+def _reference_kf(zs: np.ndarray, dt: float) -> np.ndarray:
+    """The textbook 4-state filter [x, y, vx, vy] with full matrices: velocity after each frame."""
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt
+    g = np.array([[dt**2 / 2, 0], [0, dt**2 / 2], [dt, 0], [0, dt]])
+    q = ACCEL_SIGMA_MPS2**2 * g @ g.T
+    h = np.hstack([np.eye(2), np.zeros((2, 2))])
+    r = MEAS_SIGMA_M**2 * np.eye(2)
+    x = np.array([zs[0, 0], zs[0, 1], 0.0, 0.0])
+    p = np.diag([MEAS_SIGMA_M**2] * 2 + [INIT_SPEED_SIGMA_MPS**2] * 2)
+    out = [x[2:].copy()]
+    for z in zs[1:]:
+        x, p = f @ x, f @ p @ f.T + q
+        k = p @ h.T @ np.linalg.inv(h @ p @ h.T + r)
+        x, p = x + k @ (z - h @ x), (np.eye(4) - k @ h) @ p
+        out.append(x[2:].copy())
+    return np.array(out)
+
+
+def test_a_mover_at_1_m_per_tick_is_at_10_mps_by_its_third_frame():
+    tracker = Tracker()
+    zs = np.array([[20.0 + k, 3.0] for k in range(3)])
+    for k, (x, y) in enumerate(zs):
+        (tr,) = tracker.update([_det(x, y)], DT * k)
+        if k == 1:
+            # by hand: P00 = R + s_v^2 dt^2 + q dt^4 / 4 and P10 = s_v^2 dt + q dt^3 / 2 after the
+            # prediction; the 1 m innovation times the gain P10 / (P00 + R)
+            r, sv2, q = MEAS_SIGMA_M**2, INIT_SPEED_SIGMA_MPS**2, ACCEL_SIGMA_MPS2**2
+            p00, p10 = r + sv2 * DT**2 + q * DT**4 / 4, sv2 * DT + q * DT**3 / 2
+            assert tr.filtered_velocity[0] == pytest.approx(p10 / (p00 + r))
+    assert tr.filtered_velocity == pytest.approx([10.0, 0.0], abs=1.0)
+    assert tr.filtered_velocity == pytest.approx(_reference_kf(zs, DT)[-1], abs=1e-9)
+
+
+def test_the_filter_matches_the_reference_on_a_noisy_turning_mover():
+    rng = np.random.default_rng(3)
+    t = np.arange(30) * DT
+    truth = 30.0 * np.stack([np.cos(0.3 * t), np.sin(0.3 * t)], axis=1)  # 9 m/s, 2.7 m/s^2 inward
+    zs = truth + rng.normal(0.0, 0.15, truth.shape)
+    tracker = Tracker()
+    got = []
+    for k, z in enumerate(zs):
+        (tr,) = tracker.update([_det(*z)], DT * k)
+        got.append(tr.filtered_velocity.copy())
+    np.testing.assert_allclose(np.array(got), _reference_kf(zs, DT), atol=1e-9)
+
+
+def test_a_static_object_stays_static():
+    tracker = Tracker()
+    for k in range(20):
+        (tr,) = tracker.update([_det(15.0, -2.0)], DT * k)
+        assert tr.velocity.tolist() == [0.0, 0.0]
+    assert np.hypot(*tr.filtered_velocity) < 1e-6
+
+
+def test_gating_rejects_a_jump():
+    """A track settled at 10 m/s; a detection 5 m off its prediction starts a new track."""
+    tracker = Tracker()
+    for k in range(6):
+        (tr,) = tracker.update([_det(20.0 + k, 3.0)], DT * k)
+    first = tr.track_id
+    (tr,) = tracker.update([_det(26.0, 8.0)], DT * 6)
+    assert tr.track_id != first and tr.hits == 1
+    assert [t.missed for t in tracker.tracks if t.track_id == first] == [1]
+
+
+def test_association_pairs_nearest_first_within_each_gate():
+    predicted = np.array([[0.0, 0.0], [10.0, 0.0]])
+    measured = np.array([[10.5, 0.0], [0.3, 0.0], [50.0, 0.0]])
+    # variance 0.1 m^2: gate sqrt(9.21 * 0.1) ~ 0.96 m, clipped up to the 1.5 m floor
+    assert sorted(associate(predicted, np.array([0.1, 0.1]), measured)) == [(0, 1), (1, 0)]
+    assert associate(predicted, np.array([0.1, 0.1]), measured[2:]) == []
+
+
+# ------------------------------------------------------------------------ on the LiDAR
+
+
+def _scan(boxes, pose: Pose, mount: float = 1.9):
+    pts, _ = lidar.scan(np.asarray(boxes, dtype=float), np.array([pose.x_m, pose.y_m, pose.yaw_rad]), mount,
+                        LidarConfig())
+    world = sensor_to_world(pts, pose, mount)
+    grid, cell_idx = build_grid(world, (pose.x_m, pose.y_m), GridSpec(), DrivableRaster(OPEN_FIELD, 0.5))
+    return grid, extract_objects(world, grid, cell_idx, (pose.x_m, pose.y_m))
+
+
+@pytest.mark.parametrize("heading", [0.0, np.pi, np.pi / 2])
+def test_a_car_seen_by_lidar_moves_at_its_speed_by_the_third_frame(heading):
+    """Away from, towards and across the sensor's view, 1 m per tick."""
+    tracker = Tracker()
+    d = np.array([np.cos(heading), np.sin(heading)])
+    start = np.array([25.0, -4.0]) - (10 * d if heading == np.pi / 2 else 0)
+    for k in range(3):
+        xy = start + k * d
+        grid, objs = _scan([[xy[0], xy[1], heading, 4.5, 1.8, 1.5]], Pose(0.0, 0.0, 0.0))
+        (tr,) = tracker.update(objs, DT * k)
+    assert tr.velocity == pytest.approx(10.0 * d, abs=1.5)
+
+
+def test_a_parked_truck_passed_by_a_moving_observer_stays_static():
+    """The observer drives by at 6 m/s from 25 m behind to alongside: the truck's visible
+    faces change (its centroid moves) but it never enters or leaves free ground."""
+    tracker = Tracker()
+    truck = [[0.0, 0.4, 0.0, 8.0, 2.5, 3.5]]
+    for k in range(45):
+        pose = Pose(-25.0 + 0.6 * k, -3.5, 0.0)
+        grid, objs = _scan(truck, pose)
+        tracks = tracker.update(objs, DT * k)
+        assert all(t.velocity.tolist() == [0.0, 0.0] for t in tracks), k
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_persisting_matches_a_brute_force_neighbour_search(seed):
+    """A point persists when a point of the other frame lies in its voxel or one of the
+    26 around it: checked against every pair of points."""
+    rng = np.random.default_rng(seed)
+    old = rng.uniform([-2, -1, 0], [2, 1, 1.5], (60, 3))
+    now = rng.uniform([-1, -1, 0], [3, 1, 1.5], (80, 3))
+    dx, dy, voxel = 0.7, -0.1, 0.2
+    ov = np.floor((old + [dx, dy, 0.0]) / voxel)
+    nv = np.floor(now / voxel)
+    expected = (np.abs(ov[:, None, :] - nv[None, :, :]).max(axis=2) <= 1).any(axis=1).mean()
+    shares = _persisting(old, now, np.array([[0.0, 0.0], [dx, dy]]), voxel)
+    unshifted = (np.abs(np.floor(old / voxel)[:, None, :] - nv[None, :, :]).max(axis=2) <= 1).any(axis=1).mean()
+    assert shares.tolist() == pytest.approx([unshifted, expected])
+    assert _persisting(old[:0], now, np.array([[dx, dy]]), voxel).tolist() == [0.0]

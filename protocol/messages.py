@@ -222,15 +222,14 @@ class ControlMsg:
     heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
     unscheduled: np.ndarray = field(default_factory=_no_counts)  # int64 (n,) or (0,): m per object
 
-    def __post_init__(self) -> None:
-        if len(self.unscheduled) not in (0, len(self.objects.object_id)):
-            raise ValueError(f"{len(self.unscheduled)} unscheduled counts for {len(self.objects.object_id)} objects")
-
     def starvation(self) -> np.ndarray:
-        """int64 (n,): m of every object of the map (zeros if none was reported)."""
-        if len(self.unscheduled):
-            return np.asarray(self.unscheduled, dtype=np.int64)
-        return np.zeros(len(self.objects.object_id), dtype=np.int64)
+        """int64 (n,): m of every object of the map; zeros if none was reported or the
+        counts do not match the map row for row (every receiver reads the same zeros)."""
+        n = len(self.objects.object_id)
+        m = np.asarray(self.unscheduled).reshape(-1)
+        if len(m) != n or not np.issubdtype(m.dtype, np.integer):
+            return np.zeros(n, dtype=np.int64)
+        return np.maximum(m.astype(np.int64), 0)
 
 
 @message(8, version=2)

@@ -181,21 +181,3 @@ def test_fill_of_an_empty_or_full_schedule():
                                 frame_bytes=100, n_frames=2)
     s = work_conserving(inst, greedy_schedule(inst))
     assert s.keyed(inst) == (((1, 1),), ()) and s.fill == ((0,), ())  # 500 B > S_f: never sent
-
-
-@pytest.mark.parametrize("vehicles", [40])
-def test_autocast_is_fast_at_forty_vehicles(vehicles):
-    """Loose guard against a regression to Python loops (the bench measures precisely)."""
-    import time
-
-    from bench.scheduler import intersection_instance
-
-    inst = intersection_instance(np.random.default_rng(16), vehicles)
-    autocast = get("autocast")
-    state = FRESH.advance(inst, autocast(inst, FRESH))
-    times = []
-    for _ in range(10):
-        t0 = time.perf_counter()
-        autocast(inst, state)
-        times.append(time.perf_counter() - t0)
-    assert float(np.median(times)) < 0.02

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -185,17 +184,3 @@ def test_permuted_input_gives_the_identical_schedule(name):
                 other = permuted(inst, rng)
                 assert get(name)(other, state).keyed(other) == want
             state = state.advance(inst, get(name)(inst, state))
-
-
-def test_greedy_is_fast_at_forty_vehicles():
-    """Loose guard against a regression to Python loops (the bench measures precisely)."""
-    inst = intersection_instance(np.random.default_rng(16), 40)
-    assert inst.n_objects > 1000
-    greedy = get("greedy")
-    state = FRESH.advance(inst, greedy(inst, FRESH))
-    times = []
-    for _ in range(20):
-        t0 = time.perf_counter()
-        greedy(inst, state)
-        times.append(time.perf_counter() - t0)
-    assert float(np.median(times)) < 0.005

@@ -5,6 +5,11 @@ what the table says, notices a process that died (the watchdog), and stops every
 the same way every time: SIGINT, a grace period, then SIGKILL. Each child gets its own
 session (process group), so a Ctrl-C in the terminal reaches the launcher only, which
 then stops children in order instead of all of them at once.
+
+Where a warm process factory is active (``deploy/factory.py``: the launcher makes one
+before it opens its Zenoh hub), a process is forked from it instead of started with
+``Popen``: the same command line, log, session and exit code, without importing the
+stack and loading the numba kernels again. ``AUTOCAST_FACTORY=popen`` forces Popen.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+
+from deploy import factory as process_factory
 
 log = logging.getLogger(__name__)
 
@@ -36,13 +43,18 @@ class ProcSpec:
         return [sys.executable, "-m", self.module, *self.args]
 
 
+Proc = subprocess.Popen | process_factory.ForkedProcess
+
+
 class ProcessManager:
-    def __init__(self, log_dir: Path | None = None) -> None:
+    def __init__(self, log_dir: Path | None = None, factory: process_factory.Factory | None = None) -> None:
+        """``factory``: fork processes from it; default the process's active factory, if any."""
         self.log_dir = log_dir
-        self.procs: dict[str, tuple[ProcSpec, subprocess.Popen]] = {}
+        self.factory = factory if factory is not None else process_factory.current()
+        self.procs: dict[str, tuple[ProcSpec, Proc]] = {}
         self._reported: set[str] = set()
 
-    def start(self, spec: ProcSpec) -> subprocess.Popen:
+    def start(self, spec: ProcSpec) -> Proc:
         """Start ``spec``; its stdout and stderr go to ``<log_dir>/<name>.log``."""
         if spec.name in self.procs:
             raise ValueError(f"process {spec.name!r} started twice")
@@ -52,14 +64,27 @@ class ProcessManager:
             out = open(self.log_dir / f"{spec.name}.log", "wb")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         try:
-            proc = subprocess.Popen(spec.argv(), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True, env=env)
+            proc = self._fork(spec, out, env) if self.factory is not None else None
+            if proc is None:
+                proc = subprocess.Popen(spec.argv(), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                        start_new_session=True, env=env)
         finally:
             if out is not subprocess.DEVNULL:
                 out.close()  # the child holds its own descriptor
         self.procs[spec.name] = (spec, proc)
-        log.debug("started %s (pid %d): %s", spec.name, proc.pid, " ".join(spec.argv()))
+        log.debug("started %s (pid %d%s): %s", spec.name, proc.pid, ", forked" if self.factory else "",
+                  " ".join(spec.argv()))
         return proc
+
+    def _fork(self, spec: ProcSpec, out, env: dict[str, str]) -> process_factory.ForkedProcess | None:
+        """``spec`` forked from the factory; None (and Popen from now on) if the factory failed."""
+        try:
+            return self.factory.spawn(spec.module, spec.args, stdout=None if out is subprocess.DEVNULL else out.fileno(),
+                                      env=env)
+        except process_factory.FactoryError as exc:
+            log.warning("process factory failed (%s); starting processes with Popen", exc)
+            self.factory = None
+            return None
 
     def pids(self) -> dict[str, int]:
         return {name: proc.pid for name, (_, proc) in self.procs.items()}
@@ -128,7 +153,7 @@ def exit_records(log_dir: Path, tag: str) -> dict[str, dict]:
     return out
 
 
-def _signal(proc: subprocess.Popen, sig: int) -> None:
+def _signal(proc: Proc, sig: int) -> None:
     try:
         os.killpg(proc.pid, sig)  # the child leads its own process group
     except ProcessLookupError:

@@ -34,6 +34,7 @@ from typing import Any, NoReturn
 
 import zenoh
 
+from deploy import factory as process_factory
 from deploy import table
 from deploy.procs import ProcessManager, ProcSpec, exit_records
 from protocol import faults, keys
@@ -427,6 +428,7 @@ def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
     if opts.warm_up:
         warm_numba_caches(opts.run.params)
     with ExitStack() as stack:
+        stack.enter_context(process_factory.activated())  # warm, and before any Zenoh session: see its docstring
         session, endpoint = open_hub(stack, opts.run.run_dir)
         opts = replace(opts, run=replace(opts.run, hub=endpoint))
         return Launcher(opts, session, stop).run()

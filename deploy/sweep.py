@@ -35,11 +35,14 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, NoReturn, TextIO
 
+from deploy import factory as process_factory
+
 log = logging.getLogger("deploy.sweep")
 
 EXIT_OK, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 RESULTS, PLAN, LOCK = "results.jsonl", "plan.json", "sweep.lock"
 LAUNCHER_GRACE_S = 30.0  # a launcher stops its processes within ~15 s of SIGINT (docs/running.md)
+LAUNCHER_MODULES = ("deploy.cli", "deploy.run", *process_factory.RUN_MODULES)  # what a launcher imports
 LAUNCHER_SLACK_S = 120.0  # beyond the run's own --timeout-s: start-up and shutdown
 STDERR_TAIL_CHARS = 2000
 BIG_RESULT_CHARS = 1000  # outcome fields longer than this as JSON (the distance series) stay in outcome.json
@@ -397,7 +400,7 @@ def _last_json(stdout: str) -> dict[str, Any] | None:
 class Job:
     key: RunKey
     run_id: str
-    proc: subprocess.Popen
+    proc: subprocess.Popen | process_factory.ForkedProcess
     out_path: Path
     err_path: Path
     t_start: float
@@ -407,6 +410,11 @@ class Job:
     def exited(self) -> bool:
         """Reap the launcher if it has exited, keeping its rusage (which includes its children's)."""
         if self.proc.returncode is not None:
+            return True
+        if isinstance(self.proc, process_factory.ForkedProcess):  # the factory reaped it
+            if self.proc.poll() is None:
+                return False
+            self.cpu_s = self.proc.cpu_s
             return True
         try:
             pid, status, usage = os.wait4(self.proc.pid, os.WNOHANG)
@@ -564,9 +572,18 @@ class Sweep:
                 "--run-id", run_id, "--scans", self.spec.scans, "--timeout-s", repr(self.spec.timeout_s),
                 "--agent-timeout-s", repr(self.spec.agent_timeout_s),
                 "--log-level", "WARNING", *(["--no-warm-up"] if self.warm else [])]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        factory = process_factory.current()
         with open(out_path, "wb") as out, open(err_path, "wb") as err:
-            proc = subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL, start_new_session=True,
-                                    env=dict(os.environ, PYTHONUNBUFFERED="1"))
+            proc: subprocess.Popen | process_factory.ForkedProcess | None = None
+            if factory is not None:  # forked warm: no imports, kernels loaded (as start_new_session)
+                try:
+                    proc = factory.spawn(argv[2], argv[3:], stdout=out.fileno(), stderr=err.fileno(), env=env)
+                except process_factory.FactoryError as exc:
+                    log.warning("process factory failed (%s); starting runs with Popen", exc)
+            if proc is None:
+                proc = subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
+                                        start_new_session=True, env=env)
         now = time.monotonic()
         self.running.append(Job(key, run_id, proc, out_path, err_path, now, now + self.spec.timeout_s + LAUNCHER_SLACK_S))
         log.debug("started %s (pid %d): %s", run_id, proc.pid, " ".join(argv))
@@ -799,8 +816,9 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         signal.signal(signal.SIGINT, sweep.on_signal)
         signal.signal(signal.SIGTERM, sweep.on_signal)
         progress = Progress(len(todo))
-        try:
-            failed, interrupted = sweep.execute(todo, progress)
+        try:  # every launcher forked from one warm parent, kept for the whole sweep
+            with process_factory.activated(LAUNCHER_MODULES):
+                failed, interrupted = sweep.execute(todo, progress)
         finally:
             progress.close()
         counts = Counter((r["outcome"] or "failed") for r in latest(read_results(out / RESULTS)).values())

@@ -20,6 +20,7 @@ from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import Obstacle, first_conflict
+from vehicle_agent.tracking import registered_velocity
 
 
 def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
@@ -41,6 +42,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots
     _warm_conflict(agent)
+    _warm_registration()
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None
@@ -59,6 +61,16 @@ def _warm_conflict(agent: Agent) -> None:
     crossing = Obstacle(a + 10.0 * d - 10.0 * normal, 10.0 * normal, 4.5, 1.8, 0.0, float(np.arctan2(normal[1], normal[0])))
     t_path = arc_lengths(path) / 10.0
     first_conflict(path, t_path, agent.mission.spec, [crossing], 0.0, agent.planner.config)
+
+
+def _warm_registration() -> None:
+    """The tracker tests a track's motion by registering its points (``_persisting``)
+    from the object's third frame on; the synthetic interval has only one frame, so the
+    first real third frame loaded the kernel (and, cache cold, compiled it for seconds in
+    every agent at once: they were declared dead). Three frames of one block load it."""
+    grid = np.arange(8, dtype=np.float32) * 0.2
+    points = np.stack(np.meshgrid(grid, grid, [0.5], indexing="ij"), axis=-1).reshape(-1, 3)
+    registered_velocity([(0.0, points), (0.1, points), (0.2, points)], points, 0.3, np.array([10.0, 0.0]))
 
 
 def _as_received(msg):

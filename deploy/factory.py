@@ -179,22 +179,35 @@ class ForkedProcess:
 class Factory:
     """A zygote forked from this process, and the handles of the children it forked."""
 
-    def __init__(self, preload: Sequence[str] = RUN_MODULES) -> None:
-        reason = fork_unsafe_reason()
+    def __init__(self, preload: Sequence[str] = RUN_MODULES, start: str = "fork") -> None:
+        """``start="fork"``: the zygote is a fork of this process, warm with all it has
+        loaded (refused where that is unsafe, see ``fork_unsafe_reason``); ``"exec"``: a
+        fresh interpreter (``python -m deploy.factory``) that imports ``preload``, for an
+        owner that cannot fork (it has a Zenoh session); its children load their kernels."""
+        if start not in ("fork", "exec"):
+            raise ValueError(f"start: {start!r} is not fork or exec")
+        reason = fork_unsafe_reason() if start == "fork" else None
         if reason is not None:
             raise FactoryError(reason)
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        _flush_std_streams()  # nothing buffered here may be written twice
-        pid = os.fork()
-        if pid == 0:  # the zygote
-            code = 1
-            try:
-                ours.close()
-                code = _Zygote(theirs, tuple(preload)).serve()
-            except BaseException:
-                traceback.print_exc()
-            finally:
-                os._exit(code)
+        self._popen: subprocess.Popen | None = None
+        if start == "exec":
+            self._popen = subprocess.Popen([sys.executable, "-m", "deploy.factory", str(theirs.fileno()), *preload],
+                                           pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
+                                           stdout=subprocess.DEVNULL)
+            pid = self._popen.pid
+        else:
+            _flush_std_streams()  # nothing buffered here may be written twice
+            pid = os.fork()
+            if pid == 0:  # the zygote
+                code = 1
+                try:
+                    ours.close()
+                    code = _Zygote(theirs, tuple(preload)).serve()
+                except BaseException:
+                    traceback.print_exc()
+                finally:
+                    os._exit(code)
         theirs.close()
         self.pid = pid
         self._sock = ours
@@ -203,7 +216,7 @@ class Factory:
         self._replies: list[dict] = []
         self.alive = True
         self.closed = False
-        log.debug("process factory: zygote pid %d", pid)
+        log.debug("process factory: zygote pid %d (%s)", pid, start)
 
     # -------------------------------------------------------------- requests
 
@@ -295,7 +308,14 @@ class Factory:
             self.pump(0.2)
         self._sock.close()
         self.alive = False
-        _reap(self.pid, deadline)
+        if self._popen is not None:
+            try:
+                self._popen.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._popen.kill()
+                self._popen.wait()
+        else:
+            _reap(self.pid, deadline)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -603,3 +623,17 @@ def _flush_std_streams() -> None:
         with contextlib.suppress(Exception):
             if stream is not None:
                 stream.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m deploy.factory FD [MODULE ...]``: serve as a zygote on the socket FD,
+    after importing the modules (``Factory(start="exec")`` starts it)."""
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or not argv[0].isdigit():
+        print(main.__doc__, file=sys.stderr)
+        return 2
+    return _Zygote(socket.socket(fileno=int(argv[0])), tuple(argv[1:])).serve()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import fixed_cost
+
 STAGES = ("perception", "spatial_reasoning", "schedule", "encoding", "link", "fusion", "planning", "control")
 _TIMINGS = re.compile(r"^agent_timings (\{.*\})$", re.M)
 
@@ -81,8 +83,16 @@ def main(argv: list[str] | None = None) -> int:
     print("CPU is the agent's main-thread time (its own cost, free of the waits for a core when more agents than "
           "cores run); link is encoding, publishing and decoding the channel's messages; agent_ms below is the "
           "median over agents of their median tick, plan_ms the ego's median planning")
+    costs = fixed_cost.run_all(densities, Path(args.out))
+    print(f"the fixed cost of a run ({fixed_cost.SIM_S:g} s of sim time): start-up to the first tick, teardown from "
+          "the outcome to the launcher's exit, wall; CPU of every process of the run before the first tick, after "
+          "the outcome, in all; cold: autocast run typed in a shell, warm: forked from a warm parent, as a sweep "
+          "runs it (bench/fixed_cost.py)")
+    print("\n".join(fixed_cost.table(costs)))
+    warm = {c.vehicles: c.fixed_s for c in costs if c.mode == "warm"}
     rtf_keys = " ".join(f"rtf{n}={rtf[n]:.3f}" for n in densities)
-    print(f"pipeline: agent_ms={np.median(agent_ms):.2f} plan_ms={np.median(plan_ms):.2f} {rtf_keys}")
+    print(f"pipeline: agent_ms={np.median(agent_ms):.2f} plan_ms={np.median(plan_ms):.2f} {rtf_keys} "
+          f"startup{densities[-1]}_s={warm[densities[-1]]:.2f}")
     return 0
 
 

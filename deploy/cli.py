@@ -7,6 +7,8 @@ Each subcommand hands its remaining arguments to the module that owns the job, s
 from __future__ import annotations
 
 import importlib
+import logging
+import os
 import sys
 
 from bench import HEADLINE_KEYS
@@ -33,6 +35,7 @@ commands:
 
 
 def main(argv: list[str] | None = None) -> int:
+    own_process = argv is None  # the command line of this process, not a call from Python
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
@@ -40,7 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     cmd, rest = argv[0], argv[1:]
     if cmd == "run":
         from deploy.run import main as run_main
-        return run_main(rest)
+        code = run_main(rest)
+        if own_process:
+            exit_now(code)
+        return code
     if cmd == "world":
         from world_server.__main__ import main as world_main
         return world_main(rest)
@@ -53,6 +59,17 @@ def main(argv: list[str] | None = None) -> int:
         return importlib.import_module(f"bench.{rest[0]}").main(rest[1:])
     print(f"autocast: unknown command {cmd!r}\n\n{USAGE}", file=sys.stderr)
     return 2
+
+
+def exit_now(code: int) -> None:
+    """End the process without the interpreter's teardown. After a run everything is
+    closed and written (the hub, the processes, the outcome); what is left is freeing
+    the numba kernels' LLVM modules one by one, measured at 0.3 s of CPU (1.5 s of wall
+    time on the loaded 2-core machine) per run."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -224,6 +224,9 @@ class Factory:
               stdin: int | None = None, env: Mapping[str, str] | None = None, cwd: str | None = None) -> ForkedProcess:
         """Fork ``python -m module args`` from the zygote. ``stdout``/``stderr``/``stdin``:
         descriptors for the child (None: /dev/null; ``stderr`` None: where stdout goes)."""
+        for fd in (stdin, stdout, stderr):
+            if fd is not None:
+                os.fstat(fd)  # a bad descriptor fails here (OSError), not the factory
         devnull = os.open(os.devnull, os.O_RDWR)
         try:
             fds = [devnull if stdin is None else stdin, devnull if stdout is None else stdout]

@@ -38,7 +38,8 @@ from deploy import factory as process_factory
 from deploy import table
 from deploy.procs import ProcessManager, ProcSpec, exit_records
 from protocol import faults, keys
-from protocol.messages import Outcome, Scan
+from protocol.codec import decode, encode
+from protocol.messages import MapMsg, Mission, Outcome, Scan
 from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
 from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
@@ -253,10 +254,12 @@ def _warm_agent_kernels(sim) -> None:
     from bench.scheduler import warm_up as warm_scheduler
     from vehicle_agent.agent import Agent
 
-    mapmsg = sim.scenario.roadmap.to_msg()
+    # the map and missions as an agent gets them, through the wire format: decoded arrays
+    # are read-only, which numba types apart (the rasters' kernels at the agent's start)
+    mapmsg = decode(encode(sim.scenario.roadmap.to_msg()), MapMsg)
     vids = sim.connected_vids[:2]
     views = sim.sense(vids)
-    agents = {vid: Agent(sim.mission(vid), mapmsg) for vid in vids}
+    agents = {vid: Agent(decode(encode(sim.mission(vid)), Mission), mapmsg) for vid in vids}
     heard: list[int] = []
     for vid, agent in agents.items():  # two vehicles, so each has a neighbour to reason about
         v = views[vid]

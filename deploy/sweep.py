@@ -3,7 +3,9 @@
 A sweep is the product scenarios x collider speeds x intersection deltas x vehicle
 counts x schemes x seeds, from a preset (``paper``, ``smoke``) or a TOML/JSON file,
 narrowed by flags. Each run is ``python -m deploy.cli run ... --json`` in its own
-process group, so a run that crashes is one failed record, not a failed sweep. Every
+process group, so a run that crashes is one failed record, not a failed sweep; the
+launchers are forked from one warm parent kept for the whole sweep (``deploy/factory.py``:
+no run imports the stack or loads a kernel again). Every
 finished run, judged or failed, is appended to ``<sweep dir>/results.jsonl`` as one
 JSON line (flushed and fsynced): the same command again skips every run already
 recorded, so a sweep stopped at any point resumes where it stopped.

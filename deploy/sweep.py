@@ -269,11 +269,11 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 
 
 # Wall seconds of one run alone on the 2-core development machine, by connected vehicles
-# (scheme autocast, caches warm, --scans none): start-up and shutdown (N + 3 Python
-# processes importing numpy, numba and zenoh at once, agents loading their kernels) and
+# (scheme autocast, caches warm, --scans none): the fixed cost of a run, start-up and
+# teardown (its launcher and N + 3 processes forked from the sweep's warm factory) and
 # seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
 # autocast's. How they were measured: docs/experiments.md.
-MODEL_STARTUP_S = {5: 7.0, 10: 10.5, 20: 19.0, 40: 35.0}
+MODEL_STARTUP_S = {5: 2.8, 10: 3.1, 20: 3.7, 40: 5.0}
 MODEL_TICK_S = {5: 0.04, 10: 0.07, 20: 0.145, 40: 0.37}
 MODEL_SCHEME_TICK = {"single": 0.55, "lane": 0.55, "autocast": 1.0, "autocast-fptas": 1.0, "agnostic": 2.4,
                      "emp": 4.0}

@@ -19,7 +19,7 @@ import zenoh
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import ChannelStats, CtrlBundle, DataBundle, EmpBundle, Reception, Tick
-from protocol.session import big_publisher
+from protocol.session import big_publisher, reliable_publisher
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ class Harness:
                 s.declare_subscriber(keys.net_ctrl_rx(run), self._on(CtrlBundle, self._ctrl)),
                 s.declare_subscriber(keys.net_data_rx(run), self._on(DataBundle, self._data)),
             ]
-        self._tick_pub = s.declare_publisher(keys.world_tick(run))
+        self._tick_pub = reliable_publisher(s, keys.world_tick(run))  # as the world's: a dropped tick stalls the proxy
         self._pubs: dict[str, zenoh.Publisher] = {}
 
     def _on(self, cls: type, store):

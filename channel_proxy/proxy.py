@@ -40,7 +40,7 @@ from protocol.codec import MalformedMessage, decode, encode
 from protocol.faults import Injector
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
                                EmpUpload, Outcome, Reception, Tick)
-from protocol.session import DropCounter, big_publisher
+from protocol.session import DropCounter, big_publisher, reliable_publisher
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ class ChannelProxy:
             ]
         else:
             self._entities.append(s.declare_subscriber(keys.net_emp_up(run, "*"), self._inbound("emp", EmpUpload)))
-        self._pubs["stats"] = s.declare_publisher(keys.net_stats(run))
+        self._pubs["stats"] = reliable_publisher(s, keys.net_stats(run))  # the recorder and the bench count on every one
         self._entities.append(s.liveliness().declare_token(keys.proxy_alive(run)))  # declared last: all is set up
 
     def _pub(self, key: str) -> zenoh.Publisher:

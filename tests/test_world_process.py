@@ -10,11 +10,12 @@ import time
 
 import msgpack
 import pytest
+import zenoh
 
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command, Scan, Tick
-from protocol.session import ZenohArgs, open_session
+from protocol.session import ZenohArgs, open_session, put
 from tests.conftest import wait_until
 
 RUN = "t"
@@ -144,8 +145,8 @@ def test_malformed_messages_are_counted_and_dropped(procs, hub, tap_on):
         scan = decode(sample.payload.to_bytes(), Scan)
         if scan.tick == 2:
             for payload in garbage:
-                tap.session.put(keys.cmd(RUN, 0), payload)
-        tap.session.put(keys.cmd(RUN, 0), encode(Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0)))
+                tap.session.put(keys.cmd(RUN, 0), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        put(tap.session, keys.cmd(RUN, 0), Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0))
 
     sub = tap.session.declare_subscriber(keys.scan(RUN, 0), on_scan)
     token = tap.session.liveliness().declare_token(keys.alive(RUN, 0))
@@ -202,7 +203,6 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
     the ego's view in some runs and with it in others)."""
     import numpy as np
 
-    from protocol.codec import encode
     from protocol.messages import AgentReport
 
     w = world(procs, hub, "--vehicles", "2", "--duration", "0.5", "--ego-reports")
@@ -213,13 +213,12 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
 
     def on_scan(sample):
         scan = decode(sample.payload.to_bytes(), Scan)
-        session.put(keys.cmd(RUN, 0), encode(Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0)))
+        put(session, keys.cmd(RUN, 0), Command(scan.tick, scan.t_sim_s, 0, 0.0, 0.0))
 
         def report():
             time.sleep(1.0)
             sent[scan.tick] = time.monotonic()
-            session.put(keys.report(RUN, 0), encode(AgentReport(scan.tick, scan.t_sim_s, 0,
-                                                                np.zeros((0, 2), np.float32), 0, False)))
+            put(session, keys.report(RUN, 0), AgentReport(scan.tick, scan.t_sim_s, 0, np.zeros((0, 2), np.float32), 0, False))
         threading.Thread(target=report, daemon=True).start()
 
     sub = session.declare_subscriber(keys.scan(RUN, 0), on_scan)

@@ -85,11 +85,8 @@ class SharedBatch:
         (N,) is set (all if None)."""
         if objects.all() and (points is None or points.all()):
             return self
-        point_kept = np.repeat(objects, self.counts)
-        if points is not None:
-            point_kept &= points
-        counts = np.bincount(self.owner[point_kept], minlength=len(self.keys)).astype(np.int64)
-        kept_points = np.compress(point_kept, self.points, axis=0)  # ~4x faster than points[point_kept]
+        kept_points, counts = _compact(self.points, self.counts, objects,
+                                       np.ones(0, dtype=np.bool_) if points is None else points)
         return SharedBatch([k for k, kept in zip(self.keys, objects.tolist()) if kept], kept_points,
                            counts[objects], self.velocity[objects], self.age_s[objects], self.fresh[objects])
 
@@ -181,8 +178,7 @@ class ReceivedStore:
             age = age[alive]
         keys = list(zip(self.sender.tolist(), self.object_id.tolist()))
         velocity = self.velocity_xy.copy()
-        points = self.points_world.copy()
-        points[:, :2] += np.repeat(velocity * age[:, None], self.counts, axis=0)
+        points = _moved(self.points_world, self.counts, velocity * age[:, None], 1.0)
         return SharedBatch(keys, points, self.counts.copy(), velocity, age,
                            np.array([k in fresh_keys for k in keys], dtype=bool))
 
@@ -202,8 +198,54 @@ def _segments(points: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.
     total = int(counts.sum())
     if total == len(points) and np.array_equal(starts, _starts(counts)):
         return points
-    offset = np.repeat(starts - _starts(counts), counts)
-    return points[np.arange(total) + offset]
+    return _gather(points, starts, counts, total)
+
+
+@njit(cache=True)
+def _gather(points, starts, counts, total):
+    out = np.empty((total, points.shape[1]), dtype=points.dtype)
+    q = 0
+    for k in range(len(counts)):
+        for i in range(starts[k], starts[k] + counts[k]):
+            out[q] = points[i]
+            q += 1
+    return out
+
+
+@njit(cache=True)
+def _moved(points, counts, shift, sign):
+    """Each object's points with x, y plus ``sign`` times its ``shift`` (K, 2); the same
+    sums as adding ``np.repeat(sign * shift, counts)`` (``sign`` is +1 or -1)."""
+    out = np.empty_like(points)
+    p = 0
+    for k in range(len(counts)):
+        dx, dy = shift[k, 0], shift[k, 1]
+        for _ in range(counts[k]):
+            if sign > 0:
+                out[p, 0], out[p, 1] = points[p, 0] + dx, points[p, 1] + dy
+            else:
+                out[p, 0], out[p, 1] = points[p, 0] - dx, points[p, 1] - dy
+            out[p, 2] = points[p, 2]
+            p += 1
+    return out
+
+
+@njit(cache=True)
+def _compact(points, counts, objects, keep_point):
+    """The points of the objects set in ``objects`` that are set in ``keep_point``
+    (every one if it is empty), and the kept count of every object."""
+    out = np.empty_like(points)
+    kept = np.zeros(len(counts), dtype=np.int64)
+    all_points = len(keep_point) == 0
+    p = q = 0
+    for k in range(len(counts)):
+        for _ in range(counts[k]):
+            if objects[k] and (all_points or keep_point[p]):
+                out[q] = points[p]
+                q += 1
+                kept[k] += 1
+            p += 1
+    return out[:q], kept
 
 
 @dataclass(frozen=True, slots=True)
@@ -234,40 +276,54 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
     pts = shared.points
     counts = shared.counts
     mine = np.zeros(len(pts), dtype=bool)
+    hits = np.zeros(len(shared))
+    shift = shared.velocity * shared.age_s[:, None]
     if poses and len(pts):
-        captured = pts[:, :2] - np.repeat(shared.velocity * shared.age_s[:, None], counts, axis=0)
-        for xy in (pts[:, :2], captured):
-            mine |= _on_bodies(xy, poses, length_m, width_m)
-    share = np.bincount(shared.owner, weights=mine, minlength=len(shared)) / np.maximum(counts, 1)
+        yaw = np.array([p.yaw_rad for p in poses])
+        px, py = np.array([p.x_m for p in poses]), np.array([p.y_m for p in poses])
+        reach = np.hypot(length_m / 2 + BODY_MARGIN_M, width_m / 2 + BODY_MARGIN_M)
+        box = np.array([px.min() - reach, px.max() + reach, py.min() - reach, py.max() + reach])
+        _mark_mine(pts, counts, shift, px, py, np.cos(yaw), np.sin(yaw), length_m / 2 + BODY_MARGIN_M,
+                   width_m / 2 + BODY_MARGIN_M, box, mine, hits)
+    share = hits / np.maximum(counts, 1)
     merged = (share >= MERGED_SHARE) & (share < SELF_SHARE)
     if merged.any():
         # merged with us: its motion is ours, the rest of it is taken as standing where it
         # was captured (measured: a parked car's view merged the truck with the passing
         # ego; the truck, "moving" at the ego's speed, blocked the ego's way back)
-        back = np.repeat(np.where(merged[:, None], shared.velocity * shared.age_s[:, None], 0.0), counts, axis=0)
-        points = pts.copy()
-        points[:, :2] -= back
+        points = _moved(pts, counts, np.where(merged[:, None], shift, 0.0), -1.0)
         shared = SharedBatch(shared.keys, points, counts, np.where(merged[:, None], 0.0, shared.velocity),
                              shared.age_s, shared.fresh)
     return shared.keep((counts > 0) & (share < SELF_SHARE), ~mine)
 
 
-def _on_bodies(xy: np.ndarray, poses: list, length_m: float, width_m: float) -> np.ndarray:
-    """Which points fall on our body at any of ``poses``. Only the points within the box
-    around all the poses, widened by the body's half diagonal (a point on the body at
-    one of them lies inside it), are tested."""
-    out = np.zeros(len(xy), dtype=bool)
-    reach = np.hypot(length_m / 2 + BODY_MARGIN_M, width_m / 2 + BODY_MARGIN_M)
-    px, py = np.array([p.x_m for p in poses]), np.array([p.y_m for p in poses])
-    x, y = xy[:, 0], xy[:, 1]
-    near = np.flatnonzero((x >= px.min() - reach) & (x <= px.max() + reach)
-                          & (y >= py.min() - reach) & (y <= py.max() + reach))
-    sub = xy.take(near, axis=0)
-    hit = np.zeros(len(near), dtype=bool)
-    for pose in poses:  # a handful of poses, each test vectorized over the nearby points
-        hit |= on_body(sub, pose, length_m, width_m, BODY_MARGIN_M)
-    out[near] = hit
-    return out
+@njit(cache=True)
+def _mark_mine(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length, half_width, box, mine, hits):
+    """``_on_bodies`` of every point where it is placed and where it was captured (its
+    object's ``shift`` back), in one pass: sets ``mine`` and counts each object's
+    ``hits``. The same tests in the same arithmetic as ``on_body``."""
+    p = 0
+    for k in range(len(counts)):
+        for _ in range(counts[k]):
+            on = False
+            for back in range(2):
+                x, y = pts[p, 0], pts[p, 1]
+                if back == 1:
+                    x, y = x - shift[k, 0], y - shift[k, 1]
+                if not (x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]):
+                    continue
+                for i in range(len(px)):
+                    dx, dy = x - px[i], y - py[i]
+                    c, s = cos_yaw[i], sin_yaw[i]
+                    if abs(c * dx + s * dy) <= half_length and abs(-s * dx + c * dy) <= half_width:
+                        on = True
+                        break
+                if on:
+                    break
+            if on:
+                mine[p] = True
+                hits[k] += 1.0
+            p += 1
 
 
 def not_contradicted(shared: SharedBatch, grid: Grid, free_share: float = 0.5) -> SharedBatch:
@@ -276,17 +332,35 @@ def not_contradicted(shared: SharedBatch, grid: Grid, free_share: float = 0.5) -
     stale = ~shared.fresh & (shared.counts > 0)
     if not stale.any():
         return shared
-    on_stale = np.repeat(stale, shared.counts)
-    pts, owner = np.compress(on_stale, shared.points, axis=0), shared.owner[on_stale]
-    n = grid.state.shape[0]
-    rc = grid.cell_of(pts[:, :2])
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-    ground = np.zeros(len(pts), dtype=bool)
-    ground[inside] = grid.state[rc[inside, 0], rc[inside, 1]] == GROUND
-    n_inside = np.bincount(owner[inside], minlength=len(shared))
-    n_ground = np.bincount(owner[ground], minlength=len(shared))
+    n_inside, n_ground = _on_ground(shared.points, shared.counts, stale, grid.spec.cell_m, grid.i0, grid.j0,
+                                   grid.state, GROUND)
     gone = stale & (n_inside > 0) & (n_ground >= free_share * n_inside)
     return shared.keep(~gone)
+
+
+@njit(cache=True)
+def _on_ground(points, counts, objects, cell_m, i0, j0, state, ground):
+    """Per object set in ``objects``: how many of its points fall in the grid, and how
+    many of those on a ``ground`` cell (``Grid.cell_of``'s cells)."""
+    n = state.shape[0]
+    n_inside = np.zeros(len(counts), dtype=np.int64)
+    n_ground = np.zeros(len(counts), dtype=np.int64)
+    p = 0
+    for k in range(len(counts)):
+        if not objects[k]:
+            p += counts[k]
+            continue
+        for _ in range(counts[k]):
+            fx, fy = np.floor(points[p, 0] / cell_m), np.floor(points[p, 1] / cell_m)
+            p += 1
+            if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
+                continue
+            row, col = np.int64(fy) - j0, np.int64(fx) - i0
+            if 0 <= row < n and 0 <= col < n:
+                n_inside[k] += 1
+                if state[row, col] == ground:
+                    n_ground[k] += 1
+    return n_inside, n_ground
 
 
 def fuse(grid: Grid, shared: SharedBatch) -> FusedGrid:
@@ -324,3 +398,18 @@ def _fuse_points(pts, counts, i0, j0, cell_m, clear_m, own, state, received, on_
             else:
                 received[r, c] = True
             state[r, c] = ABOVE
+
+
+def warm_kernels() -> None:
+    """Load every kernel of this module with the argument types fusion passes (the
+    synthetic warm-up interval takes only some of the paths)."""
+    pts, pts32 = np.zeros((2, 3)), np.zeros((2, 3), dtype=np.float32)
+    counts, flags = np.array([1, 1], dtype=np.int64), np.array([True, False])
+    _gather(pts, counts - 1, counts, 2)
+    _gather(pts32, counts - 1, counts, 2)
+    _moved(pts, counts, np.zeros((2, 2)), -1.0)
+    _compact(pts, counts, flags, flags)
+    _compact(pts, counts, flags, np.ones(0, dtype=np.bool_))
+    _mark_mine(pts, counts, np.zeros((2, 2)), np.zeros(1), np.zeros(1), np.ones(1), np.zeros(1), 1.0, 1.0,
+               np.zeros(4), np.zeros(2, dtype=np.bool_), np.zeros(2))
+    _on_ground(pts, counts, flags, 0.5, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND)

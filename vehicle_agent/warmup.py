@@ -17,6 +17,7 @@ from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import Obstacle, first_conflict
@@ -41,6 +42,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots
     _warm_conflict(agent)
+    warm_fusion_kernels()
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None

@@ -8,6 +8,8 @@ what the channel carried (summed from the proxy's ``net/stats`` in the run's MCA
     python tests/golden_outcomes.py --check            # re-run every entry, diff against the file
     python tests/golden_outcomes.py --check --only left_turn/autocast
     python tests/golden_outcomes.py --record           # re-record (only for a change meant to alter results)
+    python tests/golden_outcomes.py --check --scans all --out runs/golden   # keep the scans: then
+    for r in runs/golden/*/; do python -m vehicle_agent.replay $r; done     # replay every agent of each
 
 tests/test_golden_outcomes.py re-runs the entries marked ``quick``.
 """
@@ -56,7 +58,8 @@ def channel_totals(mcap_path: Path) -> dict[str, int]:
     totals = {f"{phase}_{k}": 0 for phase, ks in CHANNEL_SUMS.items() for k in ks}
     with open(mcap_path, "rb") as f:
         reader = make_reader(f)
-        topics = [ch.topic for ch in reader.get_summary().channels.values() if ch.topic.endswith("/net/stats")]
+        topics = [ch.topic for ch in reader.get_summary().channels.values()
+                  if ch.topic.startswith("ac/") and ch.topic.endswith("/net/stats")]  # not the JSON mirror
         for _, _, message in reader.iter_messages(topics=topics):
             stats = decode(message.data, ChannelStats).stats
             for phase, ks in CHANNEL_SUMS.items():
@@ -65,9 +68,9 @@ def channel_totals(mcap_path: Path) -> dict[str, int]:
     return totals
 
 
-def run_entry(scenario: str, scheme: str, duration_s: float | None, out: Path) -> dict[str, Any]:
+def run_entry(scenario: str, scheme: str, duration_s: float | None, out: Path, scans: str = "none") -> dict[str, Any]:
     cmd = [sys.executable, "-m", "deploy.cli", "run", "--scenario", scenario, "--scheme", scheme,
-           "--vehicles", str(VEHICLES), "--seed", "0", "--json", "--out", str(out), "--scans", "none",
+           "--vehicles", str(VEHICLES), "--seed", "0", "--json", "--out", str(out), "--scans", scans,
            "--log-level", "WARNING", "--agent-timeout-s", "300"]
     if duration_s is not None:
         cmd += ["--duration", f"{duration_s:g}"]
@@ -99,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--check", action="store_true", help="run every entry and compare with the golden file")
     ap.add_argument("--only", default=None, help="comma-separated entry names (scenario/scheme[/Ns])")
     ap.add_argument("--out", default="runs/golden", help="where the runs go")
+    ap.add_argument("--scans", default="none", help="scans the runs' logs keep: none (default) or all, to replay "
+                                                    "every agent from them (python -m vehicle_agent.replay)")
     args = ap.parse_args(argv)
     only = set(args.only.split(",")) if args.only else None
     todo = [e for e in matrix() if only is None or entry_name(*e) in only]
@@ -106,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for scenario, scheme, duration in todo:
         name = entry_name(scenario, scheme, duration)
-        got = run_entry(scenario, scheme, duration, Path(args.out))
+        got = run_entry(scenario, scheme, duration, Path(args.out), args.scans)
         if args.record:
             golden[name] = got
             print(f"{name}: {got['outcome']} ticks={got['ticks']} closest={got['closest_distance_m']}", flush=True)

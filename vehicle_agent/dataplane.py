@@ -21,7 +21,7 @@ from vehicle_agent.frames import scan_to_world, world_to_sensor
 from vehicle_agent.fusion import (MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse,
                                   not_contradicted, not_me)
 from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
-from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, extract_objects
+from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects
 from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
 from vehicle_agent.tracking import Track, Tracker
 
@@ -159,13 +159,14 @@ class DataPlane:
     def object_map(self, view: View, neighbors: list[NeighborState]) -> ObjectMap:
         """v and r of every tracked object for every other vehicle of the domain."""
         tracks = view.tracks
-        receivers = [nb for nb in neighbors if in_domain(nb.xy)]
+        near = in_domain(np.array([nb.xy for nb in neighbors], dtype=np.float64).reshape(-1, 2)).tolist()
+        receivers = [nb for nb, ok in zip(neighbors, near) if ok]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
         sizes = np.array([payload_size(len(t.detection.points_world)) for t in tracks], dtype=np.int64)
         centroids = np.array([t.xy for t in tracks], dtype=np.float64).reshape(-1, 2)
         viewers = np.array([nb.xy for nb in receivers], dtype=np.float64).reshape(-1, 2)
         with self._timed("visibility"):
-            targets = np.array([t.detection.corners() for t in tracks]).reshape(-1, 4, 2)
+            targets = corners_of([t.detection for t in tracks])
             own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
                                           self.mission.spec.length_m, self.mission.spec.width_m, 0.0]]))
             occluders = np.concatenate([targets, own, self.buildings])

@@ -145,12 +145,16 @@ class ReceivedStore:
         world = placed_in_world(pts, np.repeat(pose[:, 0], counts), np.repeat(pose[:, 1], counts), c, s_, mount)
         keep = np.ones(len(self), dtype=bool)
         keep[held[held >= 0]] = False  # replaced
-        self._set(np.concatenate([self.sender[keep], batch.sender[win]]),
-                  np.concatenate([self.object_id[keep], batch.object_id[win]]),
-                  np.concatenate([self.t_sim_s[keep], batch.t_sim_s[win]]),
-                  np.concatenate([self.velocity_xy[keep], batch.velocity_xy[win]]),
-                  np.concatenate([self.counts[keep], counts]),
-                  np.concatenate([_segments(self.points_world, _starts(self.counts)[keep], self.counts[keep]), world]))
+        sender = np.concatenate([self.sender[keep], batch.sender[win]])
+        object_id = np.concatenate([self.object_id[keep], batch.object_id[win]])
+        order = np.lexsort((object_id, sender))
+        from_batch = order >= int(keep.sum())
+        starts = np.concatenate([_starts(self.counts)[keep], _starts(counts)])[order]
+        self.sender, self.object_id = sender[order], object_id[order]
+        self.t_sim_s = np.concatenate([self.t_sim_s[keep], batch.t_sim_s[win]])[order]
+        self.velocity_xy = np.concatenate([self.velocity_xy[keep], batch.velocity_xy[win]])[order]
+        self.counts = np.concatenate([self.counts[keep], counts])[order]
+        self.points_world = _gather_two(self.points_world, world, starts, self.counts, from_batch)
 
     def _find(self, sender: np.ndarray, object_id: np.ndarray) -> np.ndarray:
         """The row of each (sender, object id) held, -1 where none."""
@@ -208,6 +212,20 @@ def _gather(points, starts, counts, total):
     for k in range(len(counts)):
         for i in range(starts[k], starts[k] + counts[k]):
             out[q] = points[i]
+            q += 1
+    return out
+
+
+@njit(cache=True)
+def _gather_two(a, b, starts, counts, from_b):
+    """Segment k is ``counts[k]`` rows from ``starts[k]`` of ``b`` where ``from_b[k]``,
+    else of ``a``; the segments one after the other."""
+    out = np.empty((counts.sum(), a.shape[1]), dtype=a.dtype)
+    q = 0
+    for k in range(len(counts)):
+        src = b if from_b[k] else a
+        for i in range(starts[k], starts[k] + counts[k]):
+            out[q] = src[i]
             q += 1
     return out
 
@@ -407,6 +425,7 @@ def warm_kernels() -> None:
     counts, flags = np.array([1, 1], dtype=np.int64), np.array([True, False])
     _gather(pts, counts - 1, counts, 2)
     _gather(pts32, counts - 1, counts, 2)
+    _gather_two(pts, pts, counts - 1, counts, flags)
     _moved(pts, counts, np.zeros((2, 2)), -1.0)
     _compact(pts, counts, flags, flags)
     _compact(pts, counts, flags, np.ones(0, dtype=np.bool_))

@@ -84,24 +84,24 @@ class Agent:
     # ------------------------------------------------------------------ helpers
 
     def _obstacles(self, view: View, fused: FusedGrid) -> tuple[list[Obstacle], np.ndarray]:
-        """Own tracks and the moving received objects as obstacles, and the cells of the
-        moving ones."""
+        """The moving tracks and received objects as obstacles, and their cells."""
         grid = view.grid
         n = grid.state.shape[0]
         moving = np.zeros((n, n), dtype=bool)
         obstacles = []
+        # what stands still is an obstacle only through the grid: the planner takes moving
+        # obstacles alone (Planner.run_step, the same speed test)
         for tr in view.tracks:
+            if not tr.speed_mps > STATIC_MPS:
+                continue
             det = tr.detection
             obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
                                       view.t_sim_s, tr.heading_rad))
-            if tr.speed_mps > STATIC_MPS:
-                _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
+            _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
         shared = self.dataplane.shared_batch
         shared = shared.keep(shared.counts > 0)
         if not len(shared):
             return obstacles, moving
-        # a received object that stands still is an obstacle only through the grid: the
-        # planner takes moving obstacles alone (Planner.run_step, the same speed test)
         vel = shared.velocity
         movers = shared.keep(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS)
         if not len(movers):

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from vehicle_agent.frames import placed_in_world
 from vehicle_agent.payload import ObjectBatch, ObjectPayload
 from vehicle_agent.perception import ABOVE, GROUND, Grid
 
@@ -138,11 +137,10 @@ class ReceivedStore:
         if not len(win):
             return
         counts = batch.counts[win]
-        pts = _segments(batch.points_sensor, _starts(batch.counts)[win], counts)
         pose = batch.sender_pose[win]
-        c, s_ = np.repeat(np.cos(pose[:, 2]), counts), np.repeat(np.sin(pose[:, 2]), counts)
-        mount = np.repeat(batch.mount_height_m[win].astype(pts.dtype), counts)
-        world = placed_in_world(pts, np.repeat(pose[:, 0], counts), np.repeat(pose[:, 1], counts), c, s_, mount)
+        world = _placed(batch.points_sensor, _starts(batch.counts)[win], counts, np.ascontiguousarray(pose),
+                        np.cos(pose[:, 2]), np.sin(pose[:, 2]),
+                        batch.mount_height_m[win].astype(batch.points_sensor.dtype))
         keep = np.ones(len(self), dtype=bool)
         keep[held[held >= 0]] = False  # replaced
         sender = np.concatenate([self.sender[keep], batch.sender[win]])
@@ -212,6 +210,23 @@ def _gather(points, starts, counts, total):
     for k in range(len(counts)):
         for i in range(starts[k], starts[k] + counts[k]):
             out[q] = points[i]
+            q += 1
+    return out
+
+
+@njit(cache=True)
+def _placed(points, starts, counts, pose, cos_yaw, sin_yaw, mount):
+    """``placed_in_world`` of the segments ``starts[k]:starts[k] + counts[k]`` of the
+    sensor-frame ``points``, each with its sender's pose (x, y, yaw), cos and sin of its
+    yaw and mount height (in the points' dtype), one after the other: the same sums."""
+    out = np.empty((counts.sum(), 3))
+    q = 0
+    for k in range(len(counts)):
+        x, y, c, s, h = pose[k, 0], pose[k, 1], cos_yaw[k], sin_yaw[k], mount[k]
+        for i in range(starts[k], starts[k] + counts[k]):
+            out[q, 0] = x + c * points[i, 0] - s * points[i, 1]
+            out[q, 1] = y + s * points[i, 0] + c * points[i, 1]
+            out[q, 2] = points[i, 2] + h
             q += 1
     return out
 
@@ -426,6 +441,8 @@ def warm_kernels() -> None:
     _gather(pts, counts - 1, counts, 2)
     _gather(pts32, counts - 1, counts, 2)
     _gather_two(pts, pts, counts - 1, counts, flags)
+    for p in (pts, pts32):
+        _placed(p, counts - 1, counts, np.zeros((2, 3)), np.ones(2), np.zeros(2), np.zeros(2, dtype=p.dtype))
     _moved(pts, counts, np.zeros((2, 2)), -1.0)
     _compact(pts, counts, flags, flags)
     _compact(pts, counts, flags, np.ones(0, dtype=np.bool_))

@@ -101,7 +101,8 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__) 
     sc.add_argument("--delta", default="0", metavar="SECONDS",
                     help="collider reaches the conflict point this long after the ego (default 0)")
     sc.add_argument("--seed", default="0", help="background placement and channel loss (default 0)")
-    sc.add_argument("--duration", default="20", metavar="SECONDS", help="sim time limit (default 20)")
+    sc.add_argument("--duration", default=None, metavar="SECONDS",
+                    help="sim time limit (default: the scenario's own; overtaking 40, left_turn 30, red_light 40)")
     ap.add_argument("--scheme", default="autocast", help=f"{' | '.join(SCHEMES)} (default autocast)")
     ap.add_argument("--scheduler", default=None, metavar="NAME",
                     help="replace the scheme's scheduler (agnostic, autocast, autocast-fptas) with a registered "
@@ -142,8 +143,9 @@ def scenario_from(args: argparse.Namespace) -> ScenarioParams:
     """The validated scenario: field names and messages are ``world_server.scenarios``'s."""
     values = {"scenario": args.scenario, "vehicles": _number("vehicles", args.vehicles, int),
               "collider_speed_kmh": _number("collider_speed_kmh", args.collider_speed, float),
-              "delta_s": _number("delta_s", args.delta, float), "seed": _number("seed", args.seed, int),
-              "duration_s": _number("duration_s", args.duration, float)}
+              "delta_s": _number("delta_s", args.delta, float), "seed": _number("seed", args.seed, int)}
+    if args.duration is not None:
+        values["duration_s"] = _number("duration_s", args.duration, float)
     try:
         params = params_from_dict(values)
         table.connected_vids(params)  # building the scenario catches what the ranges cannot

@@ -70,7 +70,7 @@ class SweepSpec:
     vehicles: tuple[int, ...]
     schemes: tuple[str, ...]
     seeds: tuple[int, ...] = (0,)
-    duration_s: float = 20.0  # sim-time limit of each run
+    duration_s: float | None = None  # sim-time limit of each run; None: each scenario's own
     timeout_s: float = 900.0  # wall-clock limit of each run (autocast run --timeout-s)
     agent_timeout_s: float = 10.0  # wall time an agent may take for a tick before the world declares it dead
     scans: str = "none"  # LiDAR scans the recorder keeps; the report needs none of them
@@ -115,6 +115,13 @@ class RunKey:
                 "--scheme", self.scheme, "--seed", str(self.seed), "--duration", repr(self.duration_s)]
 
 
+def time_limit_s(scenario: str) -> float:
+    """The scenario's own sim-time limit (``world_server.scenarios.time_limit_s``)."""
+    from world_server.scenarios import time_limit_s as limit
+
+    return limit(scenario)
+
+
 def _num(x: float) -> str:
     return f"{x:g}".replace(".", "p")
 
@@ -123,7 +130,7 @@ def expand(spec: SweepSpec) -> list[RunKey]:
     """The runs, seed by seed, densities ascending, every scheme of a configuration
     together: a sweep stopped early holds comparable schemes, the slow 40-vehicle
     runs last within a seed."""
-    return [RunKey(sc, n, v, d, scheme, seed, spec.duration_s)
+    return [RunKey(sc, n, v, d, scheme, seed, spec.duration_s or time_limit_s(sc))
             for seed, n, sc, v, d, scheme in itertools.product(
                 spec.seeds, sorted(spec.vehicles), spec.scenarios, spec.collider_speeds_kmh, spec.deltas_s,
                 spec.schemes)]
@@ -166,7 +173,8 @@ def spec_from(values: Mapping[str, Any], name: str) -> SweepSpec:
                 vals.append(v)
         out[axis] = tuple(vals)
     try:
-        out["duration_s"] = params_from_dict({"duration_s": values.get("duration_s", 20.0)}).duration_s
+        if values.get("duration_s") is not None:
+            out["duration_s"] = params_from_dict({"duration_s": values["duration_s"]}).duration_s
     except ScenarioError as exc:
         raise SweepError(str(exc)) from None
     for key in ("timeout_s", "agent_timeout_s", "mcap_limit_mb"):
@@ -691,7 +699,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     nar.add_argument("--vehicles", metavar="N,...")
     nar.add_argument("--schemes")
     nar.add_argument("--seeds", metavar="N,...")
-    nar.add_argument("--duration", metavar="S", help="sim seconds per run (default 20)")
+    nar.add_argument("--duration", metavar="S",
+                     help="sim seconds per run (default: each scenario's own; overtaking 40, left_turn 30, red_light 40)")
     nar.add_argument("--timeout-s", metavar="S", help="wall-clock limit per run (default 900)")
     nar.add_argument("--agent-timeout-s", metavar="S", help="wall time an agent may take for one tick before the "
                      "world declares it dead (default 10; raise it on a loaded machine)")
@@ -708,6 +717,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+def _sim_limits(spec: SweepSpec) -> str:
+    if spec.duration_s is not None:
+        return f"{spec.duration_s:g} s of sim time"
+    return "sim time " + ", ".join(f"{sc} {time_limit_s(sc):g} s" for sc in spec.scenarios)
+
+
 def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: dict[str, dict[str, Any]], out: Path,
               jobs: int, vehicle_budget: int) -> str:
     dims = " x ".join(f"{len(getattr(spec, a))} {AXIS_LABEL[a]}{'s' if len(getattr(spec, a)) != 1 else ''}"
@@ -715,7 +730,7 @@ def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: 
     lines = [f"plan {spec.name!r}: {len(keys)} runs = {dims}",
              f"  scenarios {', '.join(spec.scenarios)}; collider speeds {', '.join(f'{v:g}' for v in spec.collider_speeds_kmh)} km/h;"
              f" deltas {', '.join(f'{v:g}' for v in spec.deltas_s)} s; vehicles {', '.join(map(str, spec.vehicles))};"
-             f" schemes {', '.join(spec.schemes)}; seeds {', '.join(map(str, spec.seeds))}; {spec.duration_s:g} s of sim time",
+             f" schemes {', '.join(spec.schemes)}; seeds {', '.join(map(str, spec.seeds))}; {_sim_limits(spec)}",
              f"  {'vehicles':>8} {'runs':>6} {'to run':>7} {'est. per run':>13} {'est. to run':>12}"]
     scale, measured = calibration(records.values())
     for n in sorted(spec.vehicles):

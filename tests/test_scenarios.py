@@ -131,3 +131,11 @@ def test_a_builder_that_misplaces_a_role_is_refused(monkeypatch):
     monkeypatch.setattr(ex, "bad", ego_as_vid_3, raising=False)
     with pytest.raises(ScenarioError, match=r"must place the ego as vid 0"):
         build(ScenarioParams(scenario="world_server.example_scenarios:bad", vehicles=5))
+
+
+def test_a_run_without_a_duration_takes_its_scenarios_time_limit():
+    """The authors' scenario timeouts; an import-path scenario without one gets 20 s;
+    a duration given is kept."""
+    assert [ScenarioParams(scenario=s).duration_s for s in ("overtaking", "left_turn", "red_light")] == [40, 30, 40]
+    assert ScenarioParams(scenario=EXAMPLE).duration_s == 20.0
+    assert ScenarioParams(scenario="overtaking", duration_s=7.5).duration_s == 7.5

@@ -45,6 +45,16 @@ def test_paper_preset_is_the_papers_matrix():
     assert s.collider_speeds_kmh == (20.0, 30.0, 40.0) and s.vehicles == (5, 10, 20, 40)
 
 
+def test_each_scenario_runs_for_its_own_time_limit_unless_the_sweep_gives_one():
+    """The paper's scenarios keep their authors' timeouts (overtaking 40 s, left turn
+    30 s, red light 40 s); ``duration_s`` in a sweep replaces them all."""
+    own = sweep.expand(sweep.spec_from(sweep.PRESETS["paper"], "paper"))
+    assert {(k.scenario, k.duration_s) for k in own} == {("overtaking", 40.0), ("left_turn", 30.0),
+                                                         ("red_light", 40.0)}
+    given = sweep.expand(sweep.spec_from({**sweep.PRESETS["smoke"], "duration_s": 12}, "smoke"))
+    assert {k.duration_s for k in given} == {12.0} and given[0].name.endswith("-t12")
+
+
 def test_run_key_name_is_a_valid_run_id():
     k = RunKey("left_turn", 10, 30.0, -0.5, "autocast-fptas", 3, 20.0)
     assert k.name == "left_turn-v10-c30-d-0p5-autocast-fptas-s3-t20"
@@ -263,8 +273,8 @@ def test_smoke_sweep_resume_and_report(tmp_path):
     first = autocast("sweep", "--preset", "smoke", "--out", str(out))
     assert first.returncode == 0, first.stderr
     results = lines(out / "results.jsonl")
-    assert [r["run_key"] for r in results] == ["left_turn-v5-c30-d0-single-s0-t20",
-                                               "left_turn-v5-c30-d0-autocast-s0-t20"]
+    assert [r["run_key"] for r in results] == ["left_turn-v5-c30-d0-single-s0-t30",
+                                               "left_turn-v5-c30-d0-autocast-s0-t30"]
     for r in results:
         assert r["status"] == "judged" and r["outcome"] in report.OUTCOMES
         assert (out / "runs" / r["run_id"] / "outcome.json").exists()
@@ -302,7 +312,7 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path):
     assert "FAILED (exit 3)" in res.stderr
     assert not leftovers([r["run_id"]])
     assert report.main([str(out)]) == 0
-    assert "| left_turn-v2-c30-d0-single-s0-t20 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
+    assert "| left_turn-v2-c30-d0-single-s0-t30 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
 
 
 def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
@@ -313,7 +323,7 @@ def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
                              "--agent-timeout-s", "600", "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env=dict(os.environ, AUTOCAST_FAULTS="agent1:hang@5"))
-    run_id = "left_turn-v2-c30-d0-single-s0-t20"
+    run_id = "left_turn-v2-c30-d0-single-s0-t30"
     pids = out / "runs" / run_id / "pids.json"
     try:
         wait_until(lambda: pids.exists() or proc.poll() is not None, "the run started", timeout_s=240)

@@ -35,7 +35,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     sc.add_argument("--delta", type=float, default=None, metavar="SECONDS",
                     help="collider reaches the conflict point this long after the ego (default 0)")
     sc.add_argument("--seed", type=int, default=None)
-    sc.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="sim time limit (default 20)")
+    sc.add_argument("--duration", type=float, default=None, metavar="SECONDS", help="sim time limit (default: the scenario's own, 30-40 s for the paper's)")
     sc.add_argument("--scenario-file", default=None, help="a TOML file of the same fields; flags override it")
     ap.add_argument("--run-id", default=None, help="key prefix ac/<run>/ (default: generated)")
     ap.add_argument("--realtime", action="store_true", help="tick on the wall clock instead of lock-step")

@@ -91,11 +91,13 @@ class ScenarioParams:
     collider_speed_kmh: float = 30.0
     delta_s: float = 0.0  # collider's arrival at the conflict point minus the ego's
     seed: int = 0
-    duration_s: float = 20.0
+    duration_s: float = 0.0  # sim-time limit; 0: the scenario's own (``time_limit_s``)
     ego_speed_kmh: float = 0.0  # 0: the scenario's default
 
     def __post_init__(self) -> None:
         builder_of(self.scenario)  # raises ScenarioError naming the field
+        if self.duration_s == 0:
+            object.__setattr__(self, "duration_s", time_limit_s(self.scenario))
         _check_range("vehicles", self.vehicles, 2, 64, int)
         _check_range("collider_speed_kmh", self.collider_speed_kmh, 5.0, 80.0, float)
         _check_range("delta_s", self.delta_s, -5.0, 5.0, float)
@@ -219,10 +221,24 @@ def _trim(route: np.ndarray, s0: float) -> np.ndarray:
 
 Builder = Callable[[ScenarioParams], Scenario]
 _BUILDERS: dict[str, Builder] = {}
+_TIME_LIMITS_S: dict[str, float] = {}
+# A scenario's sim-time limit unless a run gives one (--duration). The paper's three take
+# their authors' scenario timeouts (overtaking 40 s, left turn 30 s, red-light violation
+# 40 s): the ego that rightly waits for the cars following the collider needs that long.
+# With 20 s for all, overtaking at 20 km/h was judged a deadlock for every scheme at
+# 20 s while the AutoCast ego waited for the third oncoming car; with 40 s it passed
+# safely at 29.4 s (overtaking, 5 vehicles, delta 0, seed 0).
+DEFAULT_TIME_LIMIT_S = 20.0
 
 
-def register_scenario(name: str) -> Callable[[Builder], Builder]:
-    """Decorator: make a builder runnable as ``--scenario NAME``.
+def time_limit_s(name: str) -> float:
+    """The sim-time limit of scenario ``name`` when a run gives none."""
+    return _TIME_LIMITS_S.get(name, DEFAULT_TIME_LIMIT_S)
+
+
+def register_scenario(name: str, time_limit_s: float = DEFAULT_TIME_LIMIT_S) -> Callable[[Builder], Builder]:
+    """Decorator: make a builder runnable as ``--scenario NAME``, run for
+    ``time_limit_s`` of sim time unless the run says otherwise.
 
     A builder returns a ``Scenario`` with the ego (vid 0, connected), the occluder
     (vid 1, connected), the collider (vid ``params.vehicles``, not connected, its route
@@ -234,6 +250,7 @@ def register_scenario(name: str) -> Callable[[Builder], Builder]:
         if name in _BUILDERS:
             raise ValueError(f"scenario {name!r} registered twice")
         _BUILDERS[name] = builder
+        _TIME_LIMITS_S[name] = float(time_limit_s)
         return builder
     return add
 
@@ -336,7 +353,7 @@ def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m:
     return out
 
 
-@register_scenario("left_turn")
+@register_scenario("left_turn", time_limit_s=30.0)
 def _left_turn(p: ScenarioParams) -> Scenario:
     """Ego turns left from the south; the opposite left-turning truck, waiting inside the
     junction, hides the oncoming collider and the cars that follow it."""
@@ -350,7 +367,7 @@ def _left_turn(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
 
 
-@register_scenario("red_light")
+@register_scenario("red_light", time_limit_s=40.0)
 def _red_light(p: ScenarioParams) -> Scenario:
     """Ego goes straight north on green; a red-light runner comes from its left, hidden by a
     row of parked trucks in the ego's left lane and the truck waiting at the junction."""
@@ -370,7 +387,7 @@ def _red_light(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, [ego, truck, collider, *row], conflict, lights)
 
 
-@register_scenario("overtaking")
+@register_scenario("overtaking", time_limit_s=40.0)
 def _overtaking(p: ScenarioParams) -> Scenario:
     """A truck parked in the ego's lane toward the centre line; the ego passes in the
     oncoming lane, where the collider comes with more cars behind it."""

@@ -5,7 +5,9 @@ Per run it reads each agent's own stage timings (the agent prints the median of 
 stage when it exits) and the world's real-time factor (sim seconds per wall second,
 lock-step). Reported per density: each stage's CPU time per tick (the agent's mean,
 median over agents), the agent's whole tick, the ego's (the vehicle that plans a
-path every tick) and the RTF.
+path every tick) and the RTF. ``proc`` is the agent's whole-process CPU per tick (user
++ system, every thread: also the Zenoh threads that receive and decode its scan and
+bundles), measured with getrusage from the end of its first tick to the end of its last.
 """
 
 from __future__ import annotations
@@ -61,23 +63,24 @@ def main(argv: list[str] | None = None) -> int:
     densities = [int(v) for v in (args.vehicles or ("5,10" if args.quick else "5,10,20,40")).split(",")]
     duration = args.duration or (3.0 if args.quick else 8.0)
 
-    rows, rtf, agent_ms, plan_ms = [], {}, [], []
+    rows, rtf, agent_ms, plan_ms, proc = [], {}, [], [], {}
     for n in densities:
         outcome, per_agent, ego = run_once(n, duration, Path(args.out), args.scheme)
         rtf[n] = outcome["realtime_factor"]
         rows.append((n, per_agent, ego, outcome))
         agent_ms.append(_median_of(per_agent, "cpu"))
         plan_ms.append(ego.get("planning_cpu", 0.0))
+        proc[n] = _median_of(per_agent, "proc_cpu")
 
     print(f"left_turn, scheme {args.scheme}, {duration:g} s of sim time per run, lock-step")
     print("per-agent CPU ms per tick by stage (each agent's mean over ticks; the median over agents), then the "
           "agent's whole tick (median and mean), the ego's, the channel wait (wall) and the run")
-    cols = [s[:10] for s in STAGES] + ["cpu", "cpu mean", "ego cpu", "ego plan", "chan wait", "dead", "RTF"]
+    cols = [s[:10] for s in STAGES] + ["cpu", "cpu mean", "ego cpu", "ego plan", "chan wait", "proc", "dead", "RTF"]
     print(f"{'vehicles':>8} {'agents':>6} " + " ".join(f"{c:>10}" for c in cols))
     for n, per_agent, ego, outcome in rows:
         vals = [_median_of(per_agent, f"{s}_cpu_mean") for s in STAGES]
         vals += [_median_of(per_agent, "cpu"), _median_of(per_agent, "cpu_mean"), ego.get("cpu", 0.0),
-                 ego.get("planning_cpu", 0.0), _median_of(per_agent, "channel_wait")]
+                 ego.get("planning_cpu", 0.0), _median_of(per_agent, "channel_wait"), _median_of(per_agent, "proc_cpu")]
         print(f"{n:>8} {len(per_agent):>6} " + " ".join(f"{v:>10.2f}" for v in vals)
               + f" {len(outcome['dead_agents']):>10} {outcome['realtime_factor']:>10.3f}")
     print("CPU is the agent's main-thread time (its own cost, free of the waits for a core when more agents than "
@@ -91,8 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(fixed_cost.table(costs)))
     warm = {c.vehicles: c.fixed_s for c in costs if c.mode == "warm"}
     rtf_keys = " ".join(f"rtf{n}={rtf[n]:.3f}" for n in densities)
+    proc_keys = " ".join(f"proc{n}_ms={proc[n]:.2f}" for n in densities if n in (10, 40))
     print(f"pipeline: agent_ms={np.median(agent_ms):.2f} plan_ms={np.median(plan_ms):.2f} {rtf_keys} "
-          f"startup{densities[-1]}_s={warm[densities[-1]]:.2f}")
+          f"startup{densities[-1]}_s={warm[densities[-1]]:.2f} {proc_keys}")
     return 0
 
 

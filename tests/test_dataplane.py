@@ -570,3 +570,170 @@ def test_a_mover_on_a_lane_takes_the_lane_direction_and_keeps_its_speed():
     assert oncoming.velocity == pytest.approx([-np.hypot(8.0, 0.4), 0.0])
     assert crossing.velocity.tolist() == [0.0, -8.0] and elsewhere.velocity.tolist() == [-8.0, -0.4]
     assert parked.velocity.tolist() == [0.0, 0.0]
+
+
+def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed():
+    from vehicle_agent.payload import decode_objects
+
+    rng = np.random.default_rng(4)
+    payloads, want = [], []
+    for k in range(30):
+        pts = rng.normal(0, 3, (int(rng.integers(0, 40)), 3)).astype(np.float32)
+        obj = ObjectPayload(int(rng.integers(0, 64)), int(rng.integers(0, 1 << 31)), k, float(rng.uniform(0, 20)),
+                            Pose(*rng.normal(0, 50, 3)), float(rng.uniform(1.5, 4)),
+                            pts.mean(axis=0) if len(pts) else np.zeros(3, np.float32),
+                            rng.normal(0, 5, 2).astype(np.float32), pts)
+        raw = encode_object(obj)
+        bad = (raw[:-1], b"XXXX" + raw[4:], raw[:10])[k % 3] if k % 4 == 3 else None
+        payloads.append(bad if bad is not None else raw)
+        if bad is None:
+            want.append(decode_object(raw))
+    batch, n_bad = decode_objects(payloads)
+    assert n_bad == len(payloads) - len(want) > 0
+    assert batch.keys() == [(o.sender, o.object_id) for o in want]
+    np.testing.assert_array_equal(batch.t_sim_s, [o.t_sim_s for o in want])
+    np.testing.assert_array_equal(batch.sender_pose, [[o.sender_pose.x_m, o.sender_pose.y_m, o.sender_pose.yaw_rad]
+                                                      for o in want])
+    np.testing.assert_array_equal(batch.mount_height_m, [o.mount_height_m for o in want])
+    np.testing.assert_array_equal(batch.velocity_xy, np.array([o.velocity_xy for o in want], dtype=np.float64))
+    assert batch.points_sensor.dtype == np.float32
+    np.testing.assert_array_equal(batch.points_sensor, np.concatenate([o.points_sensor for o in want]))
+    assert batch.counts.tolist() == [len(o.points_sensor) for o in want]
+    empty, n_bad = decode_objects([])
+    assert len(empty) == 0 and n_bad == 0 and empty.points_sensor.shape == (0, 3)
+
+
+class _DictStore:
+    """The received-object store one dict entry per object, as it was before the store
+    became arrays: the slower reference."""
+
+    def __init__(self, max_age_s: float = 1.0) -> None:
+        self.max_age_s, self.last = max_age_s, {}
+
+    def add_many(self, objs) -> None:
+        newest = {}
+        for obj in objs:
+            key = (obj.sender, obj.object_id)
+            prev = newest.get(key) or (self.last[key][0] if key in self.last else None)
+            if prev is None or obj.t_sim_s >= prev.t_sim_s:
+                newest[key] = obj
+        for key, obj in newest.items():
+            pts = obj.points_sensor
+            mount = np.array(obj.mount_height_m, dtype=pts.dtype)
+            c, s = np.cos(obj.sender_pose.yaw_rad), np.sin(obj.sender_pose.yaw_rad)
+            self.last[key] = (obj, np.column_stack([obj.sender_pose.x_m + c * pts[:, 0] - s * pts[:, 1],
+                                                    obj.sender_pose.y_m + s * pts[:, 0] + c * pts[:, 1],
+                                                    (pts[:, 2] + mount).astype(np.float64)]))
+
+    def current(self, t_now_s: float, fresh_keys):
+        out = []
+        for key in sorted(self.last):
+            obj, world = self.last[key]
+            age = t_now_s - obj.t_sim_s
+            if age > self.max_age_s:
+                del self.last[key]
+                continue
+            placed = world.copy()
+            placed[:, :2] += obj.velocity_xy.astype(np.float64) * age
+            out.append((key, placed, obj.velocity_xy.astype(np.float64), age, key in fresh_keys))
+        return out
+
+
+def test_the_store_keeps_the_same_objects_as_one_dict_entry_per_object():
+    """Ticks of random receptions (repeated keys, late copies older than the one held,
+    objects that age out): the array store holds and places exactly what the per-object
+    reference does."""
+    from vehicle_agent.fusion import ReceivedStore
+    from vehicle_agent.payload import decode_objects
+
+    rng = np.random.default_rng(5)
+    store, ref = ReceivedStore(), _DictStore()
+    for tick in range(40):
+        t_now = tick * 0.1
+        objs = []
+        for _ in range(int(rng.integers(0, 25))):
+            pts = rng.normal(0, 2, (int(rng.integers(0, 30)), 3)).astype(np.float32)
+            objs.append(ObjectPayload(int(rng.integers(0, 6)), int(rng.integers(0, 8)), tick,
+                                      float(np.float32(t_now - rng.choice([0.0, 0.0, 0.1, 0.3, 1.2]))),
+                                      Pose(*rng.normal(0, 40, 3)), float(np.float32(rng.uniform(1.5, 4))),
+                                      pts.mean(axis=0) if len(pts) else np.zeros(3, np.float32),
+                                      rng.normal(0, 8, 2).astype(np.float32), pts))
+        batch, bad = decode_objects([encode_object(o) for o in objs])
+        decoded = [decode_object(encode_object(o)) for o in objs]
+        store.add_batch(batch)
+        ref.add_many(decoded)
+        fresh = set(batch.keys())
+        got, want = store.current(t_now, fresh), ref.current(t_now, fresh)
+        assert got.keys == [w[0] for w in want] and bad == 0
+        assert got.fresh.tolist() == [w[4] for w in want]
+        np.testing.assert_array_equal(got.age_s, [w[3] for w in want])
+        np.testing.assert_array_equal(got.velocity, np.array([w[2] for w in want]).reshape(-1, 2))
+        assert got.counts.tolist() == [len(w[1]) for w in want]
+        np.testing.assert_array_equal(got.points, np.concatenate([w[1] for w in want]) if want else np.zeros((0, 3)))
+
+
+def test_not_me_and_not_contradicted_match_their_numpy_formulations():
+    """The single-pass kernels against the whole-array numpy statements they replaced,
+    on moving, aged objects near a short history of poses (so points are tested where
+    they were captured too, and some objects merged us with something else)."""
+    from vehicle_agent.fusion import MERGED_SHARE, SELF_SHARE, SharedBatch, SharedObject, not_contradicted, not_me
+    from vehicle_agent.fusion import on_body
+
+    def not_me_reference(shared, poses, length_m, width_m):
+        pts, counts = shared.points, shared.counts
+        shift = np.repeat(shared.velocity * shared.age_s[:, None], counts, axis=0)
+        mine = np.zeros(len(pts), dtype=bool)
+        for xy in (pts[:, :2], pts[:, :2] - shift):
+            for pose in poses:
+                mine |= on_body(xy, pose, length_m, width_m)
+        share = np.bincount(shared.owner, weights=mine, minlength=len(shared)) / np.maximum(counts, 1)
+        merged = (share >= MERGED_SHARE) & (share < SELF_SHARE)
+        points = pts.copy()
+        points[:, :2] -= np.repeat(np.where(merged[:, None], shared.velocity * shared.age_s[:, None], 0.0), counts,
+                                   axis=0)
+        keep = (counts > 0) & (share < SELF_SHARE)
+        point_kept = np.repeat(keep, counts) & ~mine
+        return ([k for k, ok in zip(shared.keys, keep) if ok], points[point_kept],
+                np.where(merged[:, None], 0.0, shared.velocity)[keep])
+
+    rng = np.random.default_rng(6)
+    n_merged = 0
+    for _ in range(30):
+        poses = [Pose(float(x), float(y), float(h)) for x, y, h in
+                 np.cumsum(rng.normal(0.0, [1.0, 1.0, 0.1], (int(rng.integers(1, 8)), 3)), axis=0)]
+        shared = SharedBatch.of([SharedObject((1, i), np.column_stack([rng.normal(rng.uniform(-6, 6), 1.5, n),
+                                                                      rng.normal(rng.uniform(-6, 6), 1.0, n),
+                                                                      rng.uniform(0, 2, n)]),
+                                              rng.normal(0, 4, 2), float(rng.uniform(0, 1)), bool(rng.random() < .5))
+                                 for i, n in enumerate(rng.integers(1, 60, 20))])
+        got = not_me(shared, poses, 4.5, 1.8)
+        keys, points, velocity = not_me_reference(shared, poses, 4.5, 1.8)
+        n_merged += int((velocity == 0.0).all(axis=1).sum())
+        assert got.keys == keys
+        np.testing.assert_array_equal(got.points, points)
+        np.testing.assert_array_equal(got.velocity, velocity)
+        # not_contradicted: a stale object is gone where half its in-grid points are on ground
+        spec = GridSpec(half_extent_m=8.0)
+        n = spec.cells
+        state = rng.choice(np.array([EMPTY, GROUND, ABOVE], dtype=np.uint8), (n, n), p=[0.3, 0.5, 0.2])
+        grid = Grid(spec, -n // 2, -n // 2, state, np.ones((n, n), dtype=bool))
+        rc = grid.cell_of(got.points[:, :2])
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+        ground = np.zeros(len(rc), dtype=bool)
+        ground[inside] = state[rc[inside, 0], rc[inside, 1]] == GROUND
+        n_in = np.bincount(got.owner[inside], minlength=len(got))
+        n_ground = np.bincount(got.owner[ground], minlength=len(got))
+        gone = ~got.fresh & (got.counts > 0) & (n_in > 0) & (n_ground >= 0.5 * n_in)
+        assert not_contradicted(got, grid).keys == [k for k, g in zip(got.keys, gone) if not g]
+    assert n_merged > 0  # the merged branch ran
+
+
+def test_corners_of_many_objects_equal_each_objects_corners():
+    from vehicle_agent.perception import DetectedObject, corners_of
+
+    rng = np.random.default_rng(7)
+    objs = [DetectedObject(np.zeros((1, 3), np.float32), np.zeros((1, 2), np.int64), rng.normal(0, 80, 3),
+                           float(rng.uniform(-np.pi, np.pi)), float(rng.uniform(0.2, 12)), float(rng.uniform(0.2, 3)))
+            for _ in range(200)]
+    np.testing.assert_array_equal(corners_of(objs), np.array([o.corners() for o in objs]))
+    assert corners_of([]).shape == (0, 4, 2)

@@ -9,10 +9,12 @@ import json
 import logging
 import os
 import queue
+import resource
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +110,10 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     except TimeoutError as exc:
         log.error("world never answered: %s", exc)
         return 2
-    step = Pipeline(session, run, mission, mapmsg, args.scheme, drops, stop, args.channel_profile, args.scheduler)
+    link = None if args.scheme in ("single", "lane") else V2VLink(session, run, vid, drops, stop)
+    report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
+    step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
+                    report_pub.put if report_pub is not None else None)
     if step.link is not None:  # one line per agent, like agent_timings at exit: what this vehicle runs with
         config = {"vid": vid, "scheme": args.scheme, "scheduler": step.agreement.scheduler,
                   "channel_profile": args.channel_profile}
@@ -125,6 +130,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     profile_dir = os.environ.get(PROFILE_ENV)
     profiler = cProfile.Profile(time.thread_time) if profile_dir else None  # CPU, not the waits
     last_scan = time.monotonic()
+    proc = ProcessCpu()
     try:
         while not stop.is_set():
             try:
@@ -146,43 +152,95 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
             finally:
                 faulthandler.cancel_dump_traceback_later()
             cmd_pub.put(encode(cmd))
+            proc.tick_done()
     finally:
         token.undeclare()
         for sub in subs:
             sub.undeclare()
-        step.close()
+        if link is not None:
+            link.close()
+        if report_pub is not None:
+            report_pub.undeclare()
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
     print(drops.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
-    print("agent_timings " + json.dumps(step.timing_summary()), file=sys.stderr, flush=True)
+    print("agent_timings " + json.dumps(step.timing_summary() | proc.summary()), file=sys.stderr, flush=True)
     if profiler is not None:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)
         profiler.dump_stats(Path(profile_dir) / f"agent{vid}.pstats")
     return 0
 
 
+class ProcessCpu:
+    """The whole process's CPU time (user + system, every thread: the Zenoh threads that
+    receive and decode the scans and bundles too) per tick, from the end of the first
+    tick (which may still load code) to the end of the last; the main thread's over the
+    same span, to tell the two apart; and, where /proc tells, each thread's by name
+    (``net-0``, ``rx-1``, ...: Zenoh's; ``python``: ours), to the process's exit."""
+
+    def __init__(self) -> None:
+        self.ticks = 0
+        self.first: tuple[float, float] | None = None
+        self.last: tuple[float, float] | None = None
+        self.threads_first: dict[str, float] = {}
+
+    @staticmethod
+    def _now() -> tuple[float, float]:
+        ru = resource.getrusage(resource.RUSAGE_SELF)
+        return ru.ru_utime + ru.ru_stime, time.thread_time()
+
+    @staticmethod
+    def _threads() -> dict[str, float]:
+        """CPU seconds per thread name (threads of one name added up); empty without /proc."""
+        out: dict[str, float] = {}
+        tick_s = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        for task in Path("/proc/self/task").glob("*") if Path("/proc/self/task").exists() else []:
+            try:
+                name = (task / "comm").read_text().strip()
+                fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:  # the thread ended
+                continue
+            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick_s  # utime, stime
+        return out
+
+    def tick_done(self) -> None:
+        self.ticks += 1
+        self.last = self._now()
+        if self.first is None:
+            self.first = self.last
+            self.threads_first = self._threads()
+
+    def summary(self) -> dict[str, float]:
+        """``proc_cpu``: whole-process CPU ms per tick; ``proc_main_cpu``: the main
+        thread's; ``thread_<name>_cpu``: per thread name, ms per tick (10 ms clock ticks)."""
+        if self.first is None or self.last is None or self.ticks < 2:
+            return {}
+        n = self.ticks - 1
+        out = {"proc_cpu": round((self.last[0] - self.first[0]) * 1e3 / n, 3),
+               "proc_main_cpu": round((self.last[1] - self.first[1]) * 1e3 / n, 3), "proc_ticks": n}
+        for name, cpu_s in sorted(self._threads().items()):
+            out[f"thread_{name}_cpu"] = round((cpu_s - self.threads_first.get(name, 0.0)) * 1e3 / n, 3)
+        return out
+
+
 class Pipeline:
     """One scheme's per-interval step around the Agent's stages."""
 
-    def __init__(self, session, run: str, mission: Mission, mapmsg: MapMsg, scheme: str, drops: DropCounter,
-                 stop: threading.Event, profile_name: str, scheduler: str | None = None) -> None:
-        self.session, self.run_id, self.mission, self.scheme = session, run, mission, scheme
+    def __init__(self, mission: Mission, mapmsg: MapMsg, scheme: str, profile_name: str,
+                 scheduler: str | None = None, link=None, report: Callable[[bytes], object] | None = None) -> None:
+        """``link``: the V2V channel (a ``V2VLink``; None for ``single`` and ``lane``);
+        ``report``: where the ego's encoded ``AgentReport`` goes (None: not the ego)."""
+        self.mission, self.scheme = mission, scheme
         self.agent = Agent(mission, mapmsg)
         self.lane_follower = LaneFollower(mission)
-        self.link = None if scheme in ("single", "lane") else V2VLink(session, run, mission.vid, drops, stop)
+        self.link = link
         self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
                                                       scheduler=scheduler or SCHEDULER_OF.get(scheme, "autocast"))
         self.heard: list[int] = []
         self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
         self.emp_sites: dict[int, np.ndarray] = {}
-        self.report_pub = reliable_publisher(session, keys.report(run, mission.vid)) if mission.role == "ego" else None
+        self.report = report
         self.timings: dict[str, list[float]] = {}
-
-    def close(self) -> None:
-        if self.link is not None:
-            self.link.close()
-        if self.report_pub is not None:
-            self.report_pub.undeclare()
 
     def run(self, scan: Scan) -> Command:
         if self.scheme == "lane":
@@ -202,7 +260,7 @@ class Pipeline:
         fused = agent.fuse(view, payloads)
         plan = agent.plan(view, fused, scan)
         cmd = agent.control(plan, scan)
-        if self.report_pub is not None:
+        if self.report is not None:
             with timed(agent.timings_ms, "report"):
                 self._report(view, plan, scan)
         agent.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
@@ -257,10 +315,10 @@ class Pipeline:
 
     def _report(self, view, plan, scan: Scan) -> None:
         own = [t.detection.points_world[:, :2] for t in view.tracks]
-        shared = [o.points_world[:, :2] for o in self.agent.dataplane.shared]
-        xy = np.concatenate(own + shared) if own or shared else np.zeros((0, 2))
-        n_shared = int(sum(len(s) for s in shared))
-        self.report_pub.put(encode(AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32),
+        shared = self.agent.dataplane.shared_batch.points[:, :2]  # every object's points, object after object
+        xy = np.concatenate(own + [shared])
+        n_shared = len(shared)
+        self.report(encode(AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32),
                                                n_shared, plan.braking)))
 
     def timing_summary(self) -> dict[str, float]:

@@ -84,32 +84,38 @@ class Agent:
     # ------------------------------------------------------------------ helpers
 
     def _obstacles(self, view: View, fused: FusedGrid) -> tuple[list[Obstacle], np.ndarray]:
-        """Own tracks and received objects as obstacles, and the cells of the moving ones."""
+        """The moving tracks and received objects as obstacles, and their cells."""
         grid = view.grid
         n = grid.state.shape[0]
         moving = np.zeros((n, n), dtype=bool)
         obstacles = []
+        # what stands still is an obstacle only through the grid: the planner takes moving
+        # obstacles alone (Planner.run_step, the same speed test)
         for tr in view.tracks:
+            if not tr.speed_mps > STATIC_MPS:
+                continue
             det = tr.detection
             obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
                                       view.t_sim_s, tr.heading_rad))
-            if tr.speed_mps > STATIC_MPS:
-                _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
+            _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
         shared = self.dataplane.shared_batch
         shared = shared.keep(shared.counts > 0)
         if not len(shared):
             return obstacles, moving
-        counts = shared.counts
-        xy = shared.points[:, :2]
-        lo, hi = np.minimum.reduceat(xy, shared.starts, axis=0), np.maximum.reduceat(xy, shared.starts, axis=0)
-        center, extent = (lo + hi) / 2, hi - lo
         vel = shared.velocity
+        movers = shared.keep(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS)
+        if not len(movers):
+            return obstacles, moving
+        xy = movers.points[:, :2]
+        lo, hi = np.minimum.reduceat(xy, movers.starts, axis=0), np.maximum.reduceat(xy, movers.starts, axis=0)
+        center, extent = (lo + hi) / 2, hi - lo
+        vel = movers.velocity
         length = np.maximum(extent.max(axis=1), 1.0).tolist()
         width = np.maximum(extent.min(axis=1), 1.0).tolist()
         heading = np.arctan2(vel[:, 1], vel[:, 0]).tolist()
-        for i in range(len(shared)):
+        for i in range(len(movers)):
             obstacles.append(Obstacle(center[i], vel[i], length[i], width[i], view.t_sim_s, heading[i]))
-        _mark(moving, grid, xy[np.repeat(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS, counts)])
+        _mark(moving, grid, xy)
         return obstacles, moving
 
 

@@ -15,14 +15,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import scan_to_world, world_to_sensor
 from vehicle_agent.fusion import (MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse,
                                   not_contradicted, not_me)
-from vehicle_agent.payload import ObjectPayload, decode_object, encode_object, payload_size
-from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, extract_objects
+from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
+from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects
 from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
 from vehicle_agent.tracking import Track, Tracker
 
@@ -128,8 +127,7 @@ class DataPlane:
         self.neighbors = NeighborTable()
         self.relevance_mode = relevance_mode
         self.timings_ms: dict[str, float] = {}
-        self.shared: list[SharedObject] = []  # this interval's received objects, placed, ourselves excluded
-        self.shared_batch = SharedBatch.of([])  # the same as one stack of points
+        self.shared_batch = SharedBatch.of([])  # this interval's received objects, placed, ourselves excluded
         self._recent_poses: deque[Pose] = deque(maxlen=int(round(MAX_AGE_S / mission.decision_interval_s)) + 1)
 
     @contextmanager
@@ -161,13 +159,14 @@ class DataPlane:
     def object_map(self, view: View, neighbors: list[NeighborState]) -> ObjectMap:
         """v and r of every tracked object for every other vehicle of the domain."""
         tracks = view.tracks
-        receivers = [nb for nb in neighbors if in_domain(nb.xy)]
+        near = in_domain(np.array([nb.xy for nb in neighbors], dtype=np.float64).reshape(-1, 2)).tolist()
+        receivers = [nb for nb, ok in zip(neighbors, near) if ok]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
         sizes = np.array([payload_size(len(t.detection.points_world)) for t in tracks], dtype=np.int64)
         centroids = np.array([t.xy for t in tracks], dtype=np.float64).reshape(-1, 2)
         viewers = np.array([nb.xy for nb in receivers], dtype=np.float64).reshape(-1, 2)
         with self._timed("visibility"):
-            targets = np.array([t.detection.corners() for t in tracks]).reshape(-1, 4, 2)
+            targets = corners_of([t.detection for t in tracks])
             own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
                                           self.mission.spec.length_m, self.mission.spec.width_m, 0.0]]))
             occluders = np.concatenate([targets, own, self.buildings])
@@ -219,24 +218,20 @@ class DataPlane:
         Returns the fused grid and how many payloads were malformed and dropped.
         """
         with self._timed("fusion"):
-            fresh, bad, objs = set(), 0, []
-            for raw in payloads:
-                try:
-                    obj = decode_object(raw)
-                except MalformedMessage:
-                    bad += 1
-                    continue
-                objs.append(obj)
-                fresh.add((obj.sender, obj.object_id))
-            self.received.add_many(objs)
+            batch, bad = decode_objects(payloads)
+            self.received.add_batch(batch)
             spec = self.mission.spec
             self._recent_poses.append(view.pose)
-            shared = not_me(self.received.current(view.t_sim_s, fresh), list(self._recent_poses), spec.length_m,
-                            spec.width_m)
+            shared = not_me(self.received.current(view.t_sim_s, set(batch.keys())), list(self._recent_poses),
+                            spec.length_m, spec.width_m)
             self.shared_batch = not_contradicted(shared, view.grid)
-            self.shared = self.shared_batch.objects()
             fused = fuse(view.grid, self.shared_batch)
         return fused, bad
+
+    @property
+    def shared(self) -> list[SharedObject]:
+        """This interval's received objects, placed, ourselves excluded, one by one."""
+        return self.shared_batch.objects()
 
 
 class LaneDirections:

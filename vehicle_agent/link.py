@@ -87,23 +87,16 @@ class V2VLink:
         """Broadcast our control message; return the ones we heard this interval."""
         self._ctrl_pub.put(encode(msg))
         bundle = self._take(self._ctrl, msg.tick)
-        mine = bundle.heard_by(self.vid) if bundle is not None else None
-        if mine is None:
+        heard = heard_in(bundle, self.vid, self.drops)
+        if heard is None:
             self.missed_bundles += 1
             return []
-        heard = []
-        for raw in mine:
-            try:
-                heard.append(decode(raw, ControlMsg))
-            except MalformedMessage as err:
-                self.drops.add("ctrl bundle item", err)
         return heard
 
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
         """Transmit our scheduled objects; return what we decoded this interval."""
         self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
-        bundle = self._take(self._data, tick)
-        mine = bundle.received_by(self.vid) if bundle is not None else None
+        mine = received_in(self._take(self._data, tick), self.vid)
         if mine is None:
             self.missed_bundles += 1
             return []
@@ -116,6 +109,28 @@ class V2VLink:
         if bundle is None:
             self.missed_bundles += 1
         return bundle
+
+
+def heard_in(bundle: CtrlBundle | None, vid: int, drops: DropCounter) -> list[ControlMsg] | None:
+    """The control messages ``vid`` heard in ``bundle``, decoded (a malformed one is
+    counted in ``drops`` and left out); None if there is no bundle or ``vid`` is not
+    one of its receivers."""
+    mine = bundle.heard_by(vid) if bundle is not None else None
+    if mine is None:
+        return None
+    heard = []
+    for raw in mine:
+        try:
+            heard.append(decode(raw, ControlMsg))
+        except MalformedMessage as err:
+            drops.add("ctrl bundle item", err)
+    return heard
+
+
+def received_in(bundle: DataBundle | None, vid: int) -> list[Reception] | None:
+    """What ``vid`` decoded in ``bundle``; None if there is no bundle or ``vid`` is not
+    one of its receivers."""
+    return bundle.received_by(vid) if bundle is not None else None
 
 
 def _into(box: _Mailbox, cls: type, drops: DropCounter) -> Callable:

@@ -78,6 +78,22 @@ class DetectedObject:
         return self.centroid[:2] + local @ np.array([[c, s], [-s, c]])
 
 
+def corners_of(objects: list[DetectedObject]) -> np.ndarray:
+    """(K, 4, 2) ``corners()`` of every object in one pass: the same products (one 4 x 2
+    by 2 x 2 matrix product per object), so the same values."""
+    if not objects:
+        return np.zeros((0, 4, 2))
+    yaw = np.array([o.yaw_rad for o in objects], dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    hl = np.array([o.length_m for o in objects], dtype=np.float64) / 2
+    hw = np.array([o.width_m for o in objects], dtype=np.float64) / 2
+    local = np.stack([np.stack([hl, hw], 1), np.stack([-hl, hw], 1), np.stack([-hl, -hw], 1),
+                      np.stack([hl, -hw], 1)], 1)
+    rotation = np.stack([np.stack([c, s], 1), np.stack([-s, c], 1)], 1)
+    centroid = np.array([o.centroid[:2] for o in objects], dtype=np.float64)
+    return centroid[:, None, :] + local @ rotation
+
+
 @njit(cache=True)
 def _bin(world, i0, j0, cell, n, clear, state, cell_idx):
     """Classify cells and remember each point's flat cell index (-1 outside)."""

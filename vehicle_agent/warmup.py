@@ -17,9 +17,11 @@ from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import Obstacle, first_conflict
+from vehicle_agent.scheduler.state import _merge_join
 from vehicle_agent.tracking import registered_velocity
 
 
@@ -36,13 +38,20 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
                                         np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
                                         agent.dataplane.object_map(view, []), np.array([m.vid], np.int64)))
     agent.dataplane.neighbors.update([other_msg])
-    own = agent.control_message(view, scan, heard=[other])
+    # every object once unscheduled: the scheduler state's join of starvation counters loads too
+    own = agent.control_message(view, scan, heard=[other], unscheduled={t.track_id: 1 for t in view.tracks})
     slots = plan_transmissions(decide(m.vid, 0, own, [other_msg], agreement), agreement)
     payloads = agent.dataplane.payloads(view, [t.track_id for t in view.tracks])
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots
     _warm_conflict(agent)
     _warm_registration()
+    warm_fusion_kernels()
+    key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous
+    oid = np.zeros(1, dtype=np.int64)
+    key.setflags(write=False)
+    oid.setflags(write=False)
+    _merge_join(np.zeros(1, dtype=np.int64), oid, key[:, 0], key[:, 1])
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None

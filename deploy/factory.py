@@ -141,7 +141,6 @@ class ForkedProcess:
         self.returncode: int | None = None
         self.cpu_s: float | None = None  # user + system, from the zygote's wait4
         self.maxrss_kib: int | None = None
-        self._done = threading.Event()
 
     def poll(self) -> int | None:
         if self.returncode is None:
@@ -170,7 +169,6 @@ class ForkedProcess:
 
     def _exited(self, rc: int, cpu_s: float, maxrss_kib: int) -> None:
         self.returncode, self.cpu_s, self.maxrss_kib = rc, cpu_s, maxrss_kib
-        self._done.set()
 
     def __repr__(self) -> str:
         return f"ForkedProcess(pid={self.pid}, returncode={self.returncode})"

@@ -262,8 +262,9 @@ class FoxgloveScene:
         ts = stamp(w.t_sim_s)
         transforms, entities = [], []
         for vid, (x, y, yaw), (length, width, height) in zip(w.vids.tolist(), w.pose.tolist(), w.size_m.tolist()):
-            transforms.append(FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=vehicle_frame(vid),
-                                             translation=Vector3(x=x, y=y, z=0.0), rotation=yaw_quaternion(yaw)))
+            transforms.append(FrameTransform(timestamp=ts, parent_frame_id=WORLD_FRAME,
+                                             child_frame_id=vehicle_frame(vid), translation=Vector3(x=x, y=y, z=0.0),
+                                             rotation=yaw_quaternion(yaw)))
             if vid in self.missions:
                 transforms.append(FrameTransform(
                     timestamp=ts, parent_frame_id=vehicle_frame(vid), child_frame_id=lidar_frame(vid),

@@ -176,7 +176,7 @@ def stat_unit(path: str) -> str:
     if name.endswith("_ms"):
         return "ms"
     if name == "utilization":
-        return "share of airtime"
+        return "busy share of the interval"
     return "count"
 
 
@@ -199,12 +199,6 @@ def xy_to_3d(xy: np.ndarray, z_m: float) -> np.ndarray:
     return np.column_stack([xy, np.full(len(xy), z_m)])
 
 
-def decimate(points: np.ndarray, max_points: int) -> np.ndarray:
-    if max_points <= 0 or len(points) <= max_points:
-        return points
-    return points[:: math.ceil(len(points) / max_points)]
-
-
 def schedule_markdown(tick: int, t_sim_s: float, on_air: list, sizes: dict, missions: dict[int, Mission],
                       stats: dict) -> str:
     """One interval's data phase as a table: who sent which object when, its size, and
@@ -214,7 +208,7 @@ def schedule_markdown(tick: int, t_sim_s: float, on_air: list, sizes: dict, miss
     if not on_air:
         return head + ": nothing on the data channel this interval."
     util = data.get("utilization")
-    lines = [head + f": {len(on_air)} objects on air" + (f", {util:.0%} of the data phase's airtime" if
+    lines = [head + f": {len(on_air)} objects on air" + (f", the channel busy {util:.0%} of the interval" if
                                                           isinstance(util, (int, float)) else ""),
              "", "| on air (ms) | sender | object | bytes | decoded / in range |", "|---|---|---|---|---|"]
     for sender, oid, start_s, end_s, decoded, in_range in sorted(on_air, key=lambda o: (o[2], o[0])):
@@ -520,8 +514,8 @@ def stat_groups(stats: ChannelStats | None) -> dict[str, list[str]]:
             continue
         section = sections.get(path.split("/")[0], path.split("/")[0]) if "/" in path else "proxy"
         unit = stat_unit(path)
-        groups.setdefault(f"{section}: {unit}{' per interval' if unit != 'share of airtime' else ''}",
-                          []).append(f"stats/{path}")
+        per = "" if unit.endswith("interval") else " per interval"
+        groups.setdefault(f"{section}: {unit}{per}", []).append(f"stats/{path}")
     return groups
 
 

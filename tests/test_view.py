@@ -360,3 +360,5 @@ def test_without_a_display_or_a_file_it_says_what_to_do(run_mcap, monkeypatch, c
 def test_a_missing_file_is_refused(tmp_path, capsys):
     assert main([str(tmp_path / "nothing.mcap"), "--save", str(tmp_path / "x.rrd")]) == 2
     assert "no such" in capsys.readouterr().err
+    assert export.main([str(tmp_path / "nothing.mcap"), "--foxglove", str(tmp_path / "x.mcap")]) == 2
+    assert "no such" in capsys.readouterr().err and not (tmp_path / "x.mcap").exists()

@@ -73,8 +73,8 @@ KNOWN_LINE_RADIUS_M = 0.03
 LIGHT_HEAD_M = (0.4, 0.4, 1.0)  # a signal head on a 5 m pole
 LIGHT_HEIGHT_M = 5.0
 GRID_SPACING_M = 10.0
-CHASE_BACK_M = 22.0  # the default camera: behind the vehicle's first heading ...
-CHASE_UP_M = 26.0  # ... and above it, looking at the vehicle, following it
+CHASE_BACK_M = 16.0  # the default camera: behind the vehicle's first heading ...
+CHASE_UP_M = 30.0  # ... and above it, looking down at the vehicle (34 m away), following it
 
 
 class Series:
@@ -88,6 +88,12 @@ class Series:
         self.values: dict[str, tuple[list[float], list[int], list[float]]] = {}
         self.first_tick: int | None = None
         self.named: set[str] = set()
+        self.history: dict[str, list[np.ndarray]] = {}  # path -> (k, 2) sim time, value: for the legends
+
+    def points(self, path: str) -> np.ndarray:
+        """Every (sim time, value) of a series sent so far."""
+        parts = self.history.get(path)
+        return np.vstack(parts) if parts else np.zeros((0, 2))
 
     def add(self, path: str, t_sim_s: float, tick: int, value: float, name: str) -> None:
         if path not in self.named:
@@ -107,6 +113,7 @@ class Series:
             self.rec.send_columns(path, indexes=[rr.TimeColumn(SIM_TIME, duration=times),
                                                  rr.TimeColumn(TICK, sequence=ticks)],
                                   columns=rr.Scalars.columns(scalars=values))
+            self.history.setdefault(path, []).append(np.column_stack([times, values]))
         self.values.clear()
         self.first_tick = None
 
@@ -479,6 +486,7 @@ class Scene:
             self.rec.send_columns("judge/ego_collider_distance_m",
                                   indexes=[rr.TimeColumn(SIM_TIME, duration=series[:, 0])],
                                   columns=rr.Scalars.columns(scalars=series[:, 1]))
+            self.series.history["judge/ego_collider_distance_m"] = [series]
         brief = {k: v for k, v in r.items() if not isinstance(v, (list, dict))}
         level = rr.TextLogLevel.INFO if r.get("outcome") == "safe" else rr.TextLogLevel.WARN
         self.rec.log("outcome", rr.TextLog(" ".join(f"{k}={v}" for k, v in brief.items()), level=level))
@@ -497,11 +505,56 @@ def chase_eye(vid: int, pose: tuple[float, float, float] | None) -> rrb.EyeContr
                              eye_up=[0, 0, 1], tracking_entity=f"world/vehicles/{vid}/box")
 
 
-def plot(name: str, paths: list[str], legend: bool = True) -> rrb.TimeSeriesView:
-    """A plot of series of one unit, its legend in the bottom-right corner, out of the way
-    of series that start high (distances) or rise at the start (bytes, speeds)."""
+# The legend is drawn over the plot, in a corner, ~19 px per series plus a margin; a plot
+# of the default layout in a 1920 x 1080 window is ~700 x 220 px (docs/viewing.md).
+LEGEND_ROW_PX, LEGEND_PAD_PX, LEGEND_W_PX = 19, 14, 190
+PLOT_W_PX, PLOT_H_PX = 700, 220
+MAX_LEGEND_ROWS = 6  # more series than this: no legend (hover a line for its name)
+CORNERS = (rrb.Corner2D.RightTop, rrb.Corner2D.RightBottom, rrb.Corner2D.LeftBottom, rrb.Corner2D.LeftTop)
+
+
+@dataclasses.dataclass(frozen=True)
+class Legend:
+    corner: rrb.Corner2D
+    visible: bool
+    y_range: tuple[float, float] | None = None  # widened so that no data runs under the legend
+
+
+def legend_for(series: list[np.ndarray]) -> Legend:
+    """Where a plot's legend hides no data: the corner whose columns hold no data in its
+    rows, else the one that needs the least extra room on the value axis, and that room."""
+    series = [s for s in series if len(s)]
+    if not 2 <= len(series) <= MAX_LEGEND_ROWS:
+        return Legend(rrb.Corner2D.RightTop, False)
+    data = np.vstack(series)
+    t, v = data[:, 0], data[:, 1]
+    t0, t1, lo, hi = t.min(), t.max(), v.min(), v.max()
+    hi = hi if hi > lo else lo + 1.0
+    h = min(0.9, (len(series) * LEGEND_ROW_PX + LEGEND_PAD_PX) / PLOT_H_PX)  # the legend's share of the height
+    w = LEGEND_W_PX / PLOT_W_PX * (t1 - t0)
+    best: tuple[float, int, tuple[float, float] | None] | None = None
+    for rank, corner in enumerate(CORNERS):
+        right, top = corner in (rrb.Corner2D.RightTop, rrb.Corner2D.RightBottom), \
+            corner in (rrb.Corner2D.RightTop, rrb.Corner2D.LeftTop)
+        under = v[t >= t1 - w] if right else v[t <= t0 + w]
+        span = (lo, hi)
+        if len(under) and top and under.max() > lo + (1 - h) * (hi - lo):
+            span = (lo, lo + (under.max() - lo) / (1 - h) * 1.03)
+        elif len(under) and not top and under.min() < hi - (1 - h) * (hi - lo):
+            span = (hi - (hi - under.min()) / (1 - h) * 1.03, hi)
+        cost = (span[1] - span[0]) / (hi - lo)
+        if best is None or cost < best[0] - 1e-9:
+            best = (cost, rank, None if span == (lo, hi) else span)
+    _, rank, y_range = best
+    return Legend(CORNERS[rank], True, y_range)
+
+
+def plot(name: str, paths: list[str], series: Series) -> rrb.TimeSeriesView:
+    """A plot of series of one unit, its legend where it hides no data."""
+    legend = legend_for([series.points(p) for p in paths])
     return rrb.TimeSeriesView(origin="/", contents=[f"+ {p}" for p in paths] or ["- /**"], name=name,
-                              plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightBottom, visible=legend))
+                              plot_legend=rrb.PlotLegend(corner=legend.corner, visible=legend.visible),
+                              axis_y=rrb.ScalarAxis(range=legend.y_range) if legend.y_range else None)
 
 
 def stat_groups(stats: ChannelStats | None) -> dict[str, list[str]]:
@@ -519,11 +572,13 @@ def stat_groups(stats: ChannelStats | None) -> dict[str, list[str]]:
     return groups
 
 
-def blueprint(prelude: Prelude) -> rrb.Blueprint:
+def blueprint(prelude: Prelude, series: Series) -> rrb.Blueprint:
     """Left: one 3-D tab per connected vehicle (ego first), following that vehicle, with
     the map, its own box, path, LiDAR and received points, the boxes it knows of and the
     vehicles without V2V (the collider) as the world has them; the whole map last.
-    Right: plots grouped by unit, and the schedule of the interval under the cursor."""
+    Right: plots grouped by unit, and the schedule of the interval under the cursor. The
+    side panels start collapsed, the time panel as its one-line bar: the views get the
+    window."""
     vids = sorted(prelude.missions)
     passive = prelude.passive_vids()
     others = [f"+ world/vehicles/{p}/{part}" for p in passive for part in ("box", "trace")]
@@ -535,30 +590,33 @@ def blueprint(prelude: Prelude) -> rrb.Blueprint:
              for v in vids]
     views.append(rrb.Spatial3DView(origin="world", name="whole map",
                                    contents=["+ world/**", *[f"- world/vehicles/{v}/lidar/**" for v in vids]]))
-    everyone = vids + passive
+    ego = [v for v in vids if prelude.missions[v].role == "ego"]
     groups = stat_groups(prelude.stats)
     motion = rrb.Tabs(
-        plot("ego-collider distance (m)", ["judge/ego_collider_distance_m"], legend=False),
-        plot("speed (m/s)", [f"vehicles/{v}/speed_mps" for v in everyone]),
-        plot("acceleration (m/s²)", [f"vehicles/{v}/accel_mps2" for v in vids]),
-        plot("received points in the fused view", [f"vehicles/{v}/fused_received_points" for v in vids]))
-    channel = rrb.Tabs(*[plot(title, paths) for title, paths in groups.items()],
-                       plot("bytes sent per vehicle", [f"schedule/tx_bytes/{v}" for v in vids]),
-                       plot("bytes decoded per vehicle", [f"schedule/rx_bytes/{v}" for v in vids]),
-                       plot("control messages heard", [f"vehicles/{v}/heard" for v in vids]))
+        plot("ego-collider distance (m)", ["judge/ego_collider_distance_m"], series),
+        plot("ego and collider speed (m/s)", [f"vehicles/{v}/speed_mps" for v in ego + passive], series),
+        plot("every vehicle's speed (m/s)", [f"vehicles/{v}/speed_mps" for v in vids + passive], series),
+        plot("ego's acceleration (m/s²)", [f"vehicles/{v}/accel_mps2" for v in ego], series),
+        plot("received points in the ego's fused view", [f"vehicles/{v}/fused_received_points" for v in ego],
+             series))
+    channel = rrb.Tabs(*[plot(title, paths, series) for title, paths in groups.items()],
+                       plot("bytes sent per vehicle", [f"schedule/tx_bytes/{v}" for v in vids], series),
+                       plot("bytes decoded per vehicle", [f"schedule/rx_bytes/{v}" for v in vids], series),
+                       plot("control messages heard", [f"vehicles/{v}/heard" for v in vids], series))
     schedule = rrb.Tabs(rrb.TextDocumentView(origin="schedule/interval", name="schedule of this interval"),
                         rrb.TextLogView(origin="/", contents=["+ schedule/air", "+ outcome", "+ events"],
                                         name="on air, outcome, events"))
     return rrb.Blueprint(rrb.Horizontal(rrb.Tabs(*views), rrb.Vertical(motion, channel, schedule,
                                                                        row_shares=[1, 1, 1.3]),
                                         column_shares=[3, 2]),
-                         rrb.TimePanel(timeline=SIM_TIME), collapse_panels=False)
+                         rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+                         rrb.TimePanel(state="collapsed", timeline=SIM_TIME))
 
 
 def build(path: Path, rec: rr.RecordingStream, scan_points: int = DEFAULT_SCAN_POINTS) -> LogStats:
-    """Log the whole run at ``path`` into ``rec``: the layout, the map and missions first
-    (they are fetched after the first tick, so they come a few messages into the log),
-    then every message in file order."""
+    """Log the whole run at ``path`` into ``rec``: the map and missions first (they are
+    fetched after the first tick, so they come a few messages into the log), then every
+    message in file order, then the layout (its legends go where the data leaves room)."""
     t0 = time.perf_counter()
     prelude = read_prelude(path)
     stats = LogStats(run_id=run_metadata(path).get("run_id", ""))
@@ -567,10 +625,10 @@ def build(path: Path, rec: rr.RecordingStream, scan_points: int = DEFAULT_SCAN_P
         scene.map(prelude.map)
     for vid in sorted(prelude.missions):
         scene.mission(prelude.missions[vid])
-    rec.send_blueprint(blueprint(prelude))
     for topic, msg in iter_log(path, stats):
         scene.add(topic, msg)
     scene.finish()
+    rec.send_blueprint(blueprint(prelude, scene.series))
     rec.flush()
     stats.wall_s = time.perf_counter() - t0
     return stats

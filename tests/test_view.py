@@ -12,6 +12,7 @@ import sys
 
 import numpy as np
 import pytest
+import rerun.blueprint as rrb
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
@@ -19,7 +20,7 @@ from rerun.chunk import RrdReader
 from deploy import export
 from deploy.recorder import JSON_ENCODING, JSON_PREFIX, JSON_SCHEMA_ENCODING, McapLog, mirror_file
 from deploy.runlog import DEFAULT_SCAN_POINTS, read_prelude, received_world, scan_points
-from deploy.view import POINT_RADIUS_M, ViewStats, build, iter_log, main
+from deploy.view import POINT_RADIUS_M, Legend, ViewStats, build, iter_log, legend_for, main
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import ChannelStats, DataBundle, Reception, Scan, Tick, WorldTruth
@@ -128,21 +129,35 @@ def test_points_are_centimetres_across_and_shared_points_look_like_own_ones(rrd)
 def test_each_vehicle_has_a_view_whose_camera_follows_it(run_mcap, rrd):
     prelude = read_prelude(run_mcap)
     reader = RrdReader(rrd)
-    eyes, corners = {}, []
+    eyes = {}
     for rb in (ch.to_record_batch() for ch in reader.stream(store=reader.blueprints()[0]).to_chunks()):
         if "EyeControls3D:tracking_entity" in rb.schema.names:
             track, position, target = (rb.column(f"EyeControls3D:{name}").to_pylist()[-1][0]
                                        for name in ("tracking_entity", "position", "look_target"))
             eyes[track.lstrip("/")] = (np.array(position), np.array(target))
-        if "PlotLegend:corner" in rb.schema.names:
-            corners += [c for row in rb.column("PlotLegend:corner").to_pylist() for c in row]
     assert set(eyes) == {f"world/vehicles/{v}/box" for v in range(VEHICLES)}
     for v in range(VEHICLES):
         position, target = eyes[f"world/vehicles/{v}/box"]
         x, y, _ = prelude.first_pose(v)
         assert np.hypot(target[0] - x, target[1] - y) < 1.0  # looking at the vehicle where it starts ...
         assert 20.0 <= np.linalg.norm(position - target) <= 60.0  # ... from a few tens of metres
-    assert corners and set(corners) == {4}  # every legend in the bottom-right corner (Corner2D.RightBottom)
+
+
+def test_a_legend_goes_where_it_hides_no_data():
+    """Worked by hand for a plot of the nominal size (220 px high): two series take
+    (2 x 19 + 14) / 220 = 0.236 of its height for the legend."""
+    t = np.linspace(0.0, 10.0, 11)
+    high, rising = np.column_stack([t, np.full(11, 10.0)]), np.column_stack([t, t])
+    # the legend's columns are the right 190 / 700 of the time axis (t >= 7.29): both series
+    # are at 8 or more there, above the bottom 0.236 of the range: the bottom-right corner is free
+    assert legend_for([high, rising]) == Legend(rrb.Corner2D.RightBottom, True)
+    # a line at 0 and a line at 10 the whole time: no corner is free; the legend goes top
+    # right over a value axis raised to 10 / (1 - 0.236) x 1.03 = 13.48
+    legend = legend_for([high, np.column_stack([t, np.zeros(11)])])
+    assert legend.corner == rrb.Corner2D.RightTop and legend.visible
+    assert legend.y_range == pytest.approx((0.0, 13.48), abs=0.01)
+    assert not legend_for([high]).visible  # one series: the plot's title names it
+    assert not legend_for([high] * 7).visible  # more rows than a plot has room for: hover for names
 
 
 def test_the_schedule_has_one_entry_per_interval_with_every_transmission(run_mcap, rrd):

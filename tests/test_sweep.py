@@ -252,6 +252,16 @@ def test_spearman_and_delay_table():
     assert [float(np.median(g.delays_ms)) for g in groups] == pytest.approx([95.0, 80.0, 65.0, 50.0])
 
 
+def test_the_report_counts_runs_against_the_last_plan_by_key():
+    rec = lambda key, status="judged": {"run_key": key, "status": status, "outcome": "safe" if status == "judged" else None}
+    plan = {"git_revision": "abc", "runs": [{"run_key": k} for k in ("b", "c", "d")]}
+    records = [rec("a"), rec("b"), rec("c", "failed")]  # "a" from an earlier plan; "d" not run yet
+    assert report.coverage(records, plan) == ("3 runs recorded (2 judged, 1 failed); the last plan (`plan.json`, "
+                                              "git revision abc) has 3 runs, 1 of them not run yet; 1 recorded "
+                                              "runs are from earlier plans.")
+    assert report.coverage(records, None) == "3 runs recorded (2 judged, 1 failed)."
+
+
 def test_report_of_an_empty_sweep_says_no_data(tmp_path):
     (tmp_path / "results.jsonl").write_text("")
     assert report.main([str(tmp_path)]) == 0
@@ -307,7 +317,8 @@ def test_smoke_sweep_resume_and_report(tmp_path):
     summary = (out / "report" / "summary.md").read_text()
     assert "| scheme | 5 vehicles | all |" in summary
     assert "| single | " in summary and "| autocast | " in summary
-    assert "2 runs planned, 2 recorded (2 judged, 0 failed)" in summary
+    assert "2 runs recorded (2 judged, 0 failed); the last plan (`plan.json`, git revision" in summary
+    assert "has 2 runs, 0 of them not run yet." in summary
 
 
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):

@@ -513,7 +513,7 @@ MAX_LEGEND_ROWS = 6  # more series than this: no legend (hover a line for its na
 CORNERS = (rrb.Corner2D.RightTop, rrb.Corner2D.RightBottom, rrb.Corner2D.LeftBottom, rrb.Corner2D.LeftTop)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, slots=True)
 class Legend:
     corner: rrb.Corner2D
     visible: bool

@@ -44,7 +44,7 @@ WINDOW = "1920x1080"  # the viewer's window
 SCREEN = "3900x1100"  # Xvfb's screen: its pointer starts at the centre, off the window (no hover tooltips)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Moments:
     start_s: float
     first_shared_s: float | None  # the ego's received points first fall on the collider

@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import gc
+import importlib
 import io
 import json
 import logging
@@ -181,7 +182,9 @@ class Factory:
         """``start="fork"``: the zygote is a fork of this process, warm with all it has
         loaded (refused where that is unsafe, see ``fork_unsafe_reason``); ``"exec"``: a
         fresh interpreter (``python -m deploy.factory``) that imports ``preload``, for an
-        owner that cannot fork (it has a Zenoh session); its children load their kernels."""
+        owner that cannot fork (it has a Zenoh session, or threads: a Dask worker); its
+        children load their kernels, unless a ``"module:function"`` entry of ``preload``
+        loaded them in the zygote (called after the import)."""
         if start not in ("fork", "exec"):
             raise ValueError(f"start: {start!r} is not fork or exec")
         reason = fork_unsafe_reason() if start == "fork" else None
@@ -371,9 +374,12 @@ class _Zygote:
         os.set_blocking(self.wake_w, False)
         signal.set_wakeup_fd(self.wake_w)
         signal.signal(signal.SIGCHLD, lambda *_: None)  # wakes the select through the wakeup fd
-        for name in preload:
+        for name in preload:  # "module", or "module:function" to call after the import (a warm-up)
+            module, _, function = name.partition(":")
             try:
-                __import__(name)
+                loaded = importlib.import_module(module)
+                if function:
+                    getattr(loaded, function)()
             except Exception:  # the child will raise it where it can be seen, in its log
                 log.debug("zygote: cannot preload %s", name, exc_info=True)
         gc.freeze()

@@ -541,8 +541,8 @@ def run_on_cluster(sweep: Sweep, keys: list[RunKey], todo: list[RunKey], address
             _, interrupted = runner.execute(todo, progress)
         except ClusterLost as exc:
             progress.close()
-            print(f"error: cluster: {exc}; {len(read_results(sweep.results))} records in {sweep.results}; the runs still on the workers stop "
-                  "and are not recorded; the same command resumes the sweep", file=sys.stderr)
+            print(f"error: cluster: {exc}; {len(read_results(sweep.results))} records in {sweep.results}; the runs "
+                  "still on the workers stop and are not recorded; the same command resumes the sweep", file=sys.stderr)
             return EXIT_CLUSTER_LOST
         finally:
             progress.close()

@@ -508,7 +508,8 @@ def _terminal_columns() -> int:
 class Sweep:
     """Runs the planned keys that are not recorded yet, ``jobs`` at a time within the vehicle budget."""
 
-    def __init__(self, spec: SweepSpec, out: Path, jobs: int, vehicle_budget: int, runs_dir: Path | None = None) -> None:
+    def __init__(self, spec: SweepSpec, out: Path, jobs: int, vehicle_budget: int,
+                 runs_dir: Path | None = None) -> None:
         self.spec, self.out = spec, out
         self.jobs, self.vehicle_budget = jobs, vehicle_budget
         self.runs_dir, self.logs_dir, self.results = runs_dir or out / "runs", out / "logs", out / RESULTS

@@ -216,7 +216,7 @@ def test_a_worker_killed_mid_run_gets_its_run_retried_once_elsewhere(tmp_path, d
     orphan = shared / first / "outcome.json"
     wait_until(orphan.exists, "the orphaned launcher stopped its run", timeout_s=120)
     assert json.loads(orphan.read_text()).get("interrupted") is True
-    assert not leftovers([first, f"{first}-a2"])
+    wait_until(lambda: not leftovers([first, f"{first}-a2"]), "the orphaned launcher exited", timeout_s=60)
 
 
 def test_ctrl_c_stops_the_runs_on_the_workers_and_a_lost_scheduler_stops_the_sweep(tmp_path, dask_cluster):
@@ -262,4 +262,4 @@ def test_ctrl_c_stops_the_runs_on_the_workers_and_a_lost_scheduler_stops_the_swe
     stopped = shared / f"{run_id}-a2" / "outcome.json"
     wait_until(stopped.exists, "the worker stopped the run it cannot report", timeout_s=120)
     assert json.loads(stopped.read_text()).get("interrupted") is True
-    assert not leftovers([run_id, f"{run_id}-a2"])
+    wait_until(lambda: not leftovers([run_id, f"{run_id}-a2"]), "the stopped launcher exited", timeout_s=60)

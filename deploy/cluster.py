@@ -179,14 +179,16 @@ def worker_factory() -> process_factory.Factory | None:
     ``AUTOCAST_FACTORY=popen`` or it cannot be made): a fresh interpreter, since a
     worker has threads, that imports what a launcher runs and loads every numba kernel
     (``zygote_warm_up``), then forks each launcher. It stops the launchers still
-    running when the worker dies (its socket closes)."""
+    running when the worker dies (its socket closes) as a sweep does: SIGINT, up to
+    ``LAUNCHER_GRACE_S`` for the launcher to stop its processes, SIGKILL."""
     global _factory
     if process_factory.disabled():
         return None
     with _factory_lock:
         if _factory is None or not _factory.alive:
             try:
-                _factory = process_factory.Factory((*LAUNCHER_MODULES, f"{__name__}:zygote_warm_up"), start="exec")
+                _factory = process_factory.Factory((*LAUNCHER_MODULES, f"{__name__}:zygote_warm_up"), start="exec",
+                                                   stop_grace_s=LAUNCHER_GRACE_S)
             except (process_factory.FactoryError, OSError) as exc:
                 log.warning("no process factory on this worker (%s): each launcher starts anew", exc)
                 return None
@@ -195,12 +197,10 @@ def worker_factory() -> process_factory.Factory | None:
 
 def zygote_warm_up() -> None:
     """In the worker's zygote: load (or, on a new host, compile) every numba kernel, as
-    a local sweep does before its first run; give launchers the sweep's grace when the
-    worker dies (the zygote stops them as the sweep does: SIGINT, grace, SIGKILL)."""
+    a local sweep does before its first run."""
     from deploy.run import warm_numba_caches
     from world_server.scenarios import ScenarioParams
 
-    process_factory.STOP_GRACE_S = LAUNCHER_GRACE_S
     warm_numba_caches(ScenarioParams())
 
 

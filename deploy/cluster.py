@@ -52,6 +52,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -253,7 +254,7 @@ def _stop_flag(client: Client, token: str) -> str | None:
         return "scheduler lost"
 
 
-def _stop_launcher(job: Job, runs_dir: Path, kill_now: Any) -> None:
+def _stop_launcher(job: Job, runs_dir: Path, kill_now: Callable[[], bool]) -> None:
     """SIGINT to the launcher's group (it stops its processes in order), up to
     ``LAUNCHER_GRACE_S`` or until ``kill_now()``; then SIGKILL, and the processes it
     listed that still carry its run id (``sweep.kill_run_processes``)."""

@@ -180,14 +180,15 @@ class ProcessCpu:
 
     def __init__(self) -> None:
         self.ticks = 0
-        self.first: tuple[float, float] | None = None
-        self.last: tuple[float, float] | None = None
+        self.first: tuple[float, float, float, int] | None = None
+        self.last: tuple[float, float, float, int] | None = None
         self.threads_first: dict[str, float] = {}
 
     @staticmethod
-    def _now() -> tuple[float, float]:
+    def _now() -> tuple[float, float, float, int]:
+        """(user + system CPU, the main thread's CPU, system CPU, minor page faults)."""
         ru = resource.getrusage(resource.RUSAGE_SELF)
-        return ru.ru_utime + ru.ru_stime, time.thread_time()
+        return ru.ru_utime + ru.ru_stime, time.thread_time(), ru.ru_stime, ru.ru_minflt
 
     @staticmethod
     def _threads() -> dict[str, float]:
@@ -212,12 +213,16 @@ class ProcessCpu:
 
     def summary(self) -> dict[str, float]:
         """``proc_cpu``: whole-process CPU ms per tick; ``proc_main_cpu``: the main
-        thread's; ``thread_<name>_cpu``: per thread name, ms per tick (10 ms clock ticks)."""
+        thread's; ``proc_sys_cpu``: the system part of ``proc_cpu``; ``proc_minflt``: minor
+        page faults per tick; ``thread_<name>_cpu``: per thread name, ms per tick (10 ms
+        clock ticks)."""
         if self.first is None or self.last is None or self.ticks < 2:
             return {}
         n = self.ticks - 1
         out = {"proc_cpu": round((self.last[0] - self.first[0]) * 1e3 / n, 3),
-               "proc_main_cpu": round((self.last[1] - self.first[1]) * 1e3 / n, 3), "proc_ticks": n}
+               "proc_main_cpu": round((self.last[1] - self.first[1]) * 1e3 / n, 3),
+               "proc_sys_cpu": round((self.last[2] - self.first[2]) * 1e3 / n, 3),
+               "proc_minflt": round((self.last[3] - self.first[3]) / n, 1), "proc_ticks": n}
         for name, cpu_s in sorted(self._threads().items()):
             out[f"thread_{name}_cpu"] = round((cpu_s - self.threads_first.get(name, 0.0)) * 1e3 / n, 3)
         return out

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from channel_proxy import loss, medium
 from protocol.messages import ControlMsg, ObjectMap, Pose
@@ -305,3 +307,35 @@ def test_config_checks_and_profile():
     from channel_proxy.profiles import get_profile
     cfg = AgreementConfig.from_profile(get_profile("dsrc"))
     assert cfg.n_frames == 1 and cfg.bandwidth_bps == 6e6 and cfg.prr == loss.PrrModel(range_m=150.0)
+
+
+@given(tick=st.integers(0, 2**31), vids=st.lists(st.integers(0, 2**40), max_size=50, unique=True),
+       salt=st.integers(0, 2**64 - 1))
+def test_the_grouping_draws_are_the_channels_keyed_draws(tick, vids, salt):
+    """The agent's one-pass draws against channel_proxy.loss.keyed_uniform, bit for bit."""
+    from channel_proxy.loss import keyed_uniform
+    from vehicle_agent.agreement import _keyed_draws
+
+    got = _keyed_draws(salt, tick, np.array(vids, dtype=np.int64))
+    np.testing.assert_array_equal(got, keyed_uniform(salt, tick, np.array(vids, dtype=np.int64)))
+
+
+@given(ballots=st.dictionaries(st.integers(0, 60), st.lists(st.integers(0, 60), max_size=40), max_size=40),
+       sort=st.booleans(), quorum=st.sampled_from([0.0, 0.1, 0.5, 1.0]))
+def test_members_equal_counting_each_ballots_distinct_others(ballots, sort, quorum):
+    """members against its definition, ballot by ballot: ascending heard lists (as
+    control messages carry them, the fast path) and unsorted ones with repeats."""
+    import math
+
+    from vehicle_agent.agreement import members
+
+    if sort:
+        ballots = {a: sorted(set(h)) for a, h in ballots.items()}
+    votes: dict[int, int] = {}
+    for author, heard in ballots.items():
+        for v in set(heard) - {author}:
+            votes[v] = votes.get(v, 0) + 1
+    need = max(1, math.ceil(quorum * len(ballots) - 1e-9))
+    want = sorted(v for v, n in votes.items() if n >= need)
+    got = members({a: np.array(h, dtype=np.int64) for a, h in ballots.items()}, quorum)
+    assert got.dtype == np.int64 and got.tolist() == want

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from vehicle_agent.scheduler import (
     InstanceTooLarge,
@@ -285,3 +287,27 @@ def test_check_schedule_catches_overfull_frames():
     with pytest.raises(ValueError, match="frames"):
         check_schedule(inst, Schedule(((), ())))
     check_schedule(inst, Schedule(((1, 2),)))
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(1, 8), st.integers(0, 30))
+def test_an_instance_is_the_same_whatever_order_its_arrays_came_in(seed, C, K):
+    """instance_from_arrays of canonically ordered arrays (make_instance's, which skip
+    reordering) and of the same arrays shuffled: every field equal, bit for bit."""
+    rng = np.random.default_rng(seed)
+    vids = np.sort(rng.choice(1000, C, replace=False))
+    pairs = sorted({(int(rng.integers(0, C)), int(rng.integers(0, 50))) for _ in range(K)})
+    owner = np.array([vids[o] for o, _ in pairs], dtype=np.int64)
+    oid = np.array([k for _, k in pairs], dtype=np.int64)
+    size = rng.integers(1, 500, len(pairs))
+    reward, p = rng.random((len(pairs), C)), rng.random((C, C))
+    history, unseen = rng.random((len(pairs), C)) < 0.3, rng.random(len(pairs)) * C
+    kw = dict(frame_bytes=900, n_frames=10, bandwidth_bps=7.2e5)
+    a = instance_from_arrays(vids, owner, oid, size, reward, p, history=history, unseen=unseen, **kw)
+    vp, kp = rng.permutation(C), rng.permutation(len(pairs))
+    b = instance_from_arrays(vids[vp], owner[kp], oid[kp], size[kp], reward[kp][:, vp], p[vp][:, vp],
+                             history=history[kp][:, vp], unseen=unseen[kp], **kw)
+    for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history", "unseen"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.flags.c_contiguous and y.flags.c_contiguous, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+    assert not a.reward.flags.writeable and reward.flags.writeable and history.flags.writeable  # copies frozen

@@ -77,9 +77,9 @@ class Instance:
         _check(self.history.dtype == np.bool_ and self.history.shape == (K, C), "history must be bool (K, C)")
         if K:
             _check(bool(np.all((self.owner >= 0) & (self.owner < C))), "owner out of range")
-            order = np.lexsort((self.object_id, self.owner))
-            _check(bool(np.all(order == np.arange(K))), "objects must be sorted by (owner, object_id)")
-            same = (np.diff(self.owner) == 0) & (np.diff(self.object_id) == 0)
+            d_owner, d_object = np.diff(self.owner), np.diff(self.object_id)
+            _check(_ascending_pairs(d_owner, d_object), "objects must be sorted by (owner, object_id)")
+            same = (d_owner == 0) & (d_object == 0)
             _check(not bool(np.any(same)), "duplicate (owner, object_id)")
             _check(bool(np.all(self.size_bytes > 0)), "size_bytes must be positive")
             _check(bool(np.all(self.reward[np.arange(K), self.owner] == 0.0)), "reward to the owner itself must be 0")
@@ -108,6 +108,12 @@ class Instance:
     def wanted(self) -> np.ndarray:
         """bool (K,): objects that still carry reward for someone (some y > 0 with h = 0)."""
         return np.any((self.reward > 0.0) & ~self.history, axis=1)
+
+
+def _ascending_pairs(d_major: np.ndarray, d_minor: np.ndarray) -> bool:
+    """Pairs in lexicographic order (ties allowed), from their consecutive differences:
+    what a stable ``np.lexsort`` leaves in place."""
+    return bool(np.all((d_major > 0) | ((d_major == 0) & (d_minor >= 0))))
 
 
 def _check(ok: bool, what: str) -> None:
@@ -186,17 +192,26 @@ def instance_from_arrays(
     if history is None:
         history = np.zeros(reward.shape, dtype=bool)
     history = np.asarray(history, dtype=bool).reshape(reward.shape)
-    if len(np.unique(vids)) != len(vids):
+    ascending = len(vids) < 2 or bool(np.all(vids[1:] > vids[:-1]))  # as make_instance gives them: no reordering
+    if not ascending and len(np.unique(vids)) != len(vids):
         raise ValueError("invalid scheduling instance: duplicate vehicle id")
-    vorder = np.argsort(vids, kind="stable")
-    sorted_vids = vids[vorder]
-    if not np.all(np.isin(owner_vid, vids)):
-        raise ValueError("invalid scheduling instance: an object's owner is not among vids")
+    vorder = np.arange(len(vids)) if ascending else np.argsort(vids, kind="stable")
+    sorted_vids = vids if ascending else vids[vorder]
     owner = np.searchsorted(sorted_vids, owner_vid)
-    korder = np.lexsort((object_id, owner))
-    reward = reward[korder][:, vorder].copy()
-    history = history[korder][:, vorder].copy()
-    owner = owner[korder]
+    found = owner < len(sorted_vids)
+    found[found] = sorted_vids[owner[found]] == owner_vid[found]
+    if not found.all():  # np.isin(owner_vid, vids)
+        raise ValueError("invalid scheduling instance: an object's owner is not among vids")
+    if len(owner) < 2 or _ascending_pairs(np.diff(owner), np.diff(object_id)):  # np.lexsort's order already
+        korder = np.arange(len(owner))
+        reward, history = reward.copy(), history.copy()
+        if not ascending:
+            reward, history = reward[:, vorder], history[:, vorder]
+    else:
+        korder = np.lexsort((object_id, owner))
+        reward = reward[korder][:, vorder].copy()
+        history = history[korder][:, vorder].copy()
+        owner = owner[korder]
     if len(owner):
         reward[np.arange(len(owner)), owner] = 0.0  # i does not need its own object
     if frame_duration_s is None:
@@ -207,7 +222,7 @@ def instance_from_arrays(
         object_id=object_id[korder].copy(),
         size_bytes=size_bytes[korder].copy(),
         reward=reward,
-        p_deliver=p_deliver[vorder][:, vorder].copy(),
+        p_deliver=p_deliver.copy() if ascending else p_deliver[vorder][:, vorder].copy(),
         history=history,
         frame_bytes=int(frame_bytes),
         n_frames=int(n_frames),

@@ -91,13 +91,16 @@ class Agent:
         obstacles = []
         # what stands still is an obstacle only through the grid: the planner takes moving
         # obstacles alone (Planner.run_step, the same speed test)
+        cells = []
         for tr in view.tracks:
             if not tr.speed_mps > STATIC_MPS:
                 continue
             det = tr.detection
             obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
                                       view.t_sim_s, tr.heading_rad))
-            _mark(moving, grid, det.cells * grid.spec.cell_m + grid.spec.cell_m / 2)
+            cells.append(det.cells)
+        if cells:  # every mover's cells at once
+            _mark(moving, grid, np.concatenate(cells) * grid.spec.cell_m + grid.spec.cell_m / 2)
         shared = self.dataplane.shared_batch
         shared = shared.keep(shared.counts > 0)
         if not len(shared):

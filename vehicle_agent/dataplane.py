@@ -17,11 +17,11 @@ import numpy as np
 
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.paths import arc_lengths, progress_along
-from vehicle_agent.frames import scan_to_world, world_to_sensor
-from vehicle_agent.fusion import (MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse,
-                                  not_contradicted, not_me)
+from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
+from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse, shared_now
 from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
-from vehicle_agent.perception import DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects
+from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects,
+                                      scan_grid, scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
 from vehicle_agent.tracking import Track, Tracker
 
@@ -142,13 +142,20 @@ class DataPlane:
         """Perceive this tick's scan; ``extra_world`` are points (world x, y, height) others
         sent as raw point clouds (the EMP baseline), perceived as if our own."""
         self.timings_ms = {}
-        with self._timed("grid"):
-            world = scan_to_world(scan, self.mission.lidar)
-            if extra_world is not None and len(extra_world):
-                world = np.concatenate([world, extra_world[:, :3]])
-            grid, cell_idx = build_grid(world, (scan.pose.x_m, scan.pose.y_m), self.spec, self.raster)
-        with self._timed("components"):
-            detections = extract_objects(world, grid, cell_idx, (scan.pose.x_m, scan.pose.y_m))
+        if extra_world is not None and len(extra_world):
+            with self._timed("grid"):
+                world = np.concatenate([scan_to_world(scan, self.mission.lidar), extra_world[:, :3]])
+                grid, cell_idx = build_grid(world, (scan.pose.x_m, scan.pose.y_m), self.spec, self.raster)
+            with self._timed("components"):
+                detections = extract_objects(world, grid, cell_idx, (scan.pose.x_m, scan.pose.y_m))
+        else:  # the same grid and objects from the range image, without the scan's world points
+            lidar, pose = self.mission.lidar, (scan.pose.x_m, scan.pose.y_m, scan.pose.yaw_rad)
+            check_fits(scan, lidar)
+            with self._timed("grid"):
+                grid, ray_cell = scan_grid(scan.range_cm, ray_tables(lidar), pose, self.mount_m, self.spec,
+                                           self.raster)
+            with self._timed("components"):
+                detections = scan_objects(scan.range_cm, ray_tables(lidar), pose, self.mount_m, grid, ray_cell)
         with self._timed("tracking"):
             tracks = self.tracker.update(detections, scan.t_sim_s)
             self.lanes.snap(tracks)
@@ -222,9 +229,9 @@ class DataPlane:
             self.received.add_batch(batch)
             spec = self.mission.spec
             self._recent_poses.append(view.pose)
-            shared = not_me(self.received.current(view.t_sim_s, set(batch.keys())), list(self._recent_poses),
-                            spec.length_m, spec.width_m)
-            self.shared_batch = not_contradicted(shared, view.grid)
+            # not_contradicted(not_me(received.current(...))) in one placement of the stack
+            self.shared_batch = shared_now(self.received, view.t_sim_s, (batch.sender, batch.object_id),
+                                           list(self._recent_poses), spec.length_m, spec.width_m, view.grid)
             fused = fuse(view.grid, self.shared_batch)
         return fused, bad
 

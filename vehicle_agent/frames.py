@@ -48,16 +48,22 @@ def scan_to_world(scan: Scan, lidar: LidarConfig) -> np.ndarray:
     The same points as ``sensor_to_world(scan.points(lidar), scan.pose, lidar.mount_height_m)``
     in one numba pass over the range image.
     """
-    if scan.range_cm.shape != (lidar.azimuth_steps, lidar.beams):
-        raise ValueError(f"range image {scan.range_cm.shape} does not fit a "
-                         f"{lidar.azimuth_steps} x {lidar.beams} LiDAR")
-    cos_az, sin_az, tan_el = _ray_tables(lidar)
+    check_fits(scan, lidar)
+    cos_az, sin_az, tan_el = ray_tables(lidar)
     return _ranges_to_world(scan.range_cm, cos_az, sin_az, tan_el, scan.pose.x_m, scan.pose.y_m,
                             scan.pose.yaw_rad, lidar.mount_height_m)
 
 
+def check_fits(scan: Scan, lidar: LidarConfig) -> None:
+    """ValueError unless the scan's range image has the LiDAR's azimuths x beams."""
+    if scan.range_cm.shape != (lidar.azimuth_steps, lidar.beams):
+        raise ValueError(f"range image {scan.range_cm.shape} does not fit a "
+                         f"{lidar.azimuth_steps} x {lidar.beams} LiDAR")
+
+
 @functools.lru_cache(maxsize=4)
-def _ray_tables(lidar: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ray_tables(lidar: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """cos and sin of each azimuth and tan of each elevation of the LiDAR."""
     az, el = lidar.azimuths_rad(), lidar.elevations_rad()
     return np.cos(az), np.sin(az), np.tan(el)
 

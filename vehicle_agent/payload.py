@@ -17,6 +17,7 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from protocol.codec import MalformedMessage
 from protocol.messages import Pose
@@ -105,25 +106,45 @@ class ObjectBatch:
                            np.array([len(p) for p in pts], dtype=np.int64))
 
 
+# the header's fields at their offsets (``_HEADER``), to read every header of a batch at once
+_HEADER_DTYPE = np.dtype({"names": ["magic", "version", "sender", "object_id", "tick", "t", "pose", "mount",
+                                    "centroid", "velocity"],
+                          "formats": ["S4", "u1", "<u2", "<u4", "<i4", "<f4", ("<f4", 3), "<f4", ("<f4", 3),
+                                      ("<f4", 2)],
+                          "offsets": [0, 4, 6, 8, 12, 16, 20, 32, 36, 48], "itemsize": HEADER_BYTES})
+_HEADER_AT = np.arange(HEADER_BYTES)
+
+
 def decode_objects(payloads: list[bytes]) -> tuple[ObjectBatch, int]:
     """Every well-formed payload of ``payloads`` as one batch (in order), and how many
-    were malformed and left out; the checks and values of ``decode_object``."""
-    headers, bodies = [], []
-    for raw in payloads:
-        n = len(raw)
-        if n < HEADER_BYTES or (n - HEADER_BYTES) % BYTES_PER_POINT:
-            continue
-        head = _HEADER.unpack_from(raw)
-        if head[0] != MAGIC or head[1] != VERSION:
-            continue
-        headers.append(head[2:])
-        bodies.append(memoryview(raw)[HEADER_BYTES:])
-    # sender, object id, tick, t, x, y, yaw, mount, centroid x y z, velocity x y: float64 holds each exactly
-    h = np.array(headers, dtype=np.float64).reshape(-1, 13)
-    counts = np.array([len(b) // BYTES_PER_POINT for b in bodies], dtype=np.int64)
-    rel = np.frombuffer(b"".join(bodies), dtype="<i2").reshape(-1, 3)
-    centroid = h[:, 8:11].astype(np.float32)
+    were malformed and left out; the checks and values of ``decode_object``.
+
+    At 40 vehicles an agent decodes ~160 payloads per interval: their headers are read
+    in one pass over the joined bytes, not one ``struct`` call per payload."""
+    lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=len(payloads))
+    starts = np.cumsum(lengths) - lengths
+    whole = (lengths >= HEADER_BYTES) & ((lengths - HEADER_BYTES) % BYTES_PER_POINT == 0)
+    raw = np.frombuffer(b"".join(payloads), dtype=np.uint8)
+    head = raw[starts[whole][:, None] + _HEADER_AT].view(_HEADER_DTYPE)[:, 0]
+    ok = np.zeros(len(payloads), dtype=bool)
+    ok[whole] = (head["magic"] == MAGIC) & (head["version"] == VERSION)
+    head = head[ok[whole]]
+    counts = (lengths[ok] - HEADER_BYTES) // BYTES_PER_POINT
+    rel = _bodies(raw, starts[ok] + HEADER_BYTES, counts * BYTES_PER_POINT).view("<i2").reshape(-1, 3)
+    centroid = head["centroid"]  # float32, as the header holds it
     points = rel.astype(np.float32) / 100.0 + np.repeat(centroid, counts, axis=0)
-    batch = ObjectBatch(h[:, 0].astype(np.int64), h[:, 1].astype(np.int64), h[:, 3].copy(), h[:, 4:7].copy(),
-                        h[:, 7].copy(), h[:, 11:13].copy(), points, counts)
-    return batch, len(payloads) - len(headers)
+    batch = ObjectBatch(head["sender"].astype(np.int64), head["object_id"].astype(np.int64),
+                        head["t"].astype(np.float64), head["pose"].astype(np.float64),
+                        head["mount"].astype(np.float64), head["velocity"].astype(np.float64), points, counts)
+    return batch, len(payloads) - int(ok.sum())
+
+
+@njit(cache=True)
+def _bodies(raw, starts, lengths):
+    """The byte ranges ``starts[k]:starts[k] + lengths[k]`` of ``raw``, one after the other."""
+    out = np.empty(lengths.sum(), dtype=np.uint8)
+    q = 0
+    for k in range(len(starts)):
+        out[q:q + lengths[k]] = raw[starts[k]:starts[k] + lengths[k]]
+        q += lengths[k]
+    return out

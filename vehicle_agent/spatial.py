@@ -28,6 +28,7 @@ HORIZON_S = 8.0  # the planner's horizon (PlannerConfig.horizon_s): what it woul
 STEP_S = 0.25
 SAFETY_M = 1.0
 WINDOW_S = 2.0  # "could collide": k's timing may be off by this much either way (the paper's delta spans +-2 s)
+_MARGIN_RAD = 1e-9  # angles here are exact to ~1e-15 rad: intervals this far apart share no ray
 
 
 @njit(cache=True)
@@ -72,6 +73,7 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
     occ_hi = np.empty(O)
     occ_near = np.empty(O)
     skip = np.zeros(O, dtype=np.bool_)
+    cand = np.empty(O, dtype=np.int64)
     for j in range(J):
         px, py = viewers[j, 0], viewers[j, 1]
         own = target_as_occluder[self_target[j]] if self_target[j] >= 0 else -1
@@ -103,6 +105,20 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
                 a = np.arctan2(tk[c, 1] - py, tk[c, 0] - px) - base
                 a = (a + np.pi) % (2 * np.pi) - np.pi
                 lo, hi = min(lo, a), max(hi, a)
+            # the occluders whose angular extent meets the target's (with a margin far above
+            # rounding): no ray of the target can enter another, so the per-ray test is not run
+            n_cand = 0
+            width = hi - lo
+            for o in range(O):
+                if skip[o] or o == target_as_occluder[k]:
+                    continue
+                span = occ_hi[o] - occ_lo[o]
+                if width + _MARGIN_RAD < np.pi and span + _MARGIN_RAD < np.pi:
+                    gap = (base + lo - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    if gap < -width - _MARGIN_RAD or gap > span + _MARGIN_RAD:
+                        continue
+                cand[n_cand] = o
+                n_cand += 1
             seen = 0
             for r in range(n_rays):
                 ang = base + lo + (hi - lo) * (r + 0.5) / n_rays
@@ -111,8 +127,9 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
                 if not np.isfinite(t_target):
                     t_target = np.hypot(cx - px, cy - py)
                 blocked = False
-                for o in range(O):
-                    if skip[o] or o == target_as_occluder[k] or occ_near[o] >= t_target:
+                for i in range(n_cand):
+                    o = cand[i]
+                    if occ_near[o] >= t_target:
                         continue
                     rel = (ang - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
                     if rel < 0.0 or rel > occ_hi[o] - occ_lo[o]:

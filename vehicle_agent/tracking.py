@@ -86,6 +86,20 @@ class Track:
         return float(_predict_cov(self.cov, t_sim_s - self.t_sim_s)[0, 0] + MEAS_SIGMA_M**2)
 
 
+def _predicted(tr: Track, t_sim_s: float) -> list[float]:
+    """``tr.predict(t_sim_s)`` on Python floats (the same sums)."""
+    dt = t_sim_s - tr.t_sim_s
+    (x, y), (vx, vy) = tr.xy.tolist(), tr.filtered_velocity.tolist()
+    return [x + vx * dt, y + vy * dt]
+
+
+def _innovation_var(cov: list[list[float]], dt: float) -> float:
+    """``Track.innovation_var`` from the covariance as nested lists (the same sums)."""
+    q = ACCEL_SIGMA_MPS2**2
+    p00, p01, p11 = cov[0][0], cov[0][1], cov[1][1]
+    return p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4 + MEAS_SIGMA_M**2
+
+
 def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
     """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration
     (written out: the 2x2 products cost more in numpy calls than in arithmetic)."""
@@ -105,8 +119,8 @@ class Tracker:
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
         """Associate this tick's detections; returns the tracks seen this tick, by id."""
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
-        predicted = np.array([tr.predict(t_sim_s) for tr in self.tracks]).reshape(-1, 2)
-        variance = np.array([tr.innovation_var(t_sim_s) for tr in self.tracks])
+        predicted = np.array([_predicted(tr, t_sim_s) for tr in self.tracks]).reshape(-1, 2)
+        variance = np.array([_innovation_var(tr.cov.tolist(), t_sim_s - tr.t_sim_s) for tr in self.tracks])
         pairs = associate(predicted, variance, centroids)
         matched_tracks, matched_dets = set(), set()
         for ti, di in pairs:
@@ -178,7 +192,6 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
     EVIDENCE_LAG_MIN matches over which the filter's shift reaches EVIDENCE_SHIFT_M.
     """
     speed = float(np.hypot(*velocity))
-    now = np.ascontiguousarray(now, dtype=np.float64)
     for back in range(EVIDENCE_LAG_MIN, len(history) + 1):
         t_old, old = history[-back]
         age = t_sim_s - t_old
@@ -186,6 +199,7 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
             continue
         if len(old) < EVIDENCE_MIN_POINTS:  # too sparse (far away) to tell a change of view from a move
             return None
+        now = np.ascontiguousarray(now, dtype=np.float64)
         old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)], dtype=np.float64)
         shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
         shares = _persisting(old, now, shifts, VOXEL_M)

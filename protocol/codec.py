@@ -82,15 +82,19 @@ def _hints(cls) -> list[tuple[str, Any]]:
     return got
 
 
+def _array_to_wire(value: np.ndarray) -> list:
+    arr = np.ascontiguousarray(value)
+    if arr.dtype.str not in WIRE_DTYPES:
+        raise TypeError(f"dtype {arr.dtype} cannot go on the wire")
+    raw = memoryview(arr).cast("B") if arr.size else b""  # a view with a 0 in its shape cannot be cast
+    return [arr.dtype.str, list(arr.shape), raw]
+
+
 def _to_wire(value: Any) -> Any:
     if isinstance(value, np.ndarray):
-        arr = np.ascontiguousarray(value)
-        if arr.dtype.str not in WIRE_DTYPES:
-            raise TypeError(f"dtype {arr.dtype} cannot go on the wire")
-        raw = memoryview(arr).cast("B") if arr.size else b""  # a view with a 0 in its shape cannot be cast
-        return [arr.dtype.str, list(arr.shape), raw]
+        return _array_to_wire(value)
     if dataclasses.is_dataclass(value):
-        return [_to_wire(getattr(value, name)) for name, _ in _hints(type(value))]
+        return _fields_to_wire(type(value))(value)
     if isinstance(value, (list, tuple)):
         return [_to_wire(v) for v in value]
     if isinstance(value, dict):
@@ -100,13 +104,51 @@ def _to_wire(value: Any) -> Any:
     return value
 
 
+_ENCODERS: dict[type, typing.Callable[[Any], list]] = {}
+
+
+def _fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
+    """A record's fields on the wire, ``[_to_wire(getattr(value, name)) for each field]``,
+    written out as one generated function per class: a field of its declared type
+    (exactly an int, a float, an ndarray, a record, a list of records) is converted
+    inline, anything else goes through ``_to_wire``. The same values, so the same bytes."""
+    got = _ENCODERS.get(cls)
+    if got is not None:
+        return got
+    built: list[typing.Callable[[Any], list]] = []
+    _ENCODERS[cls] = lambda value: built[0](value)  # a record that (indirectly) contains itself
+    env: dict[str, Any] = {"_to_wire": _to_wire, "_array_to_wire": _array_to_wire, "ndarray": np.ndarray}
+    items = []
+    for i, (name, hint) in enumerate(_hints(cls)):
+        v = f"value.{name}"
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is list else None
+        if hint in (int, float, str, bool, bytes):
+            items.append(f"v if type(v := {v}) is {hint.__name__} else _to_wire(v)")
+        elif hint is np.ndarray:
+            items.append(f"_array_to_wire(v) if type(v := {v}) is ndarray else _to_wire(v)")
+        elif dataclasses.is_dataclass(hint):
+            env[f"t{i}"], env[f"e{i}"] = hint, _fields_to_wire(hint)
+            items.append(f"e{i}(v) if type(v := {v}) is t{i} else _to_wire(v)")
+        elif inner is not None and dataclasses.is_dataclass(inner):
+            env[f"t{i}"], env[f"e{i}"] = inner, _fields_to_wire(inner)
+            items.append(f"[e{i}(x) if type(x) is t{i} else _to_wire(x) for x in v] if type(v := {v}) is list "
+                         f"else _to_wire(v)")
+        else:
+            items.append(f"_to_wire({v})")
+    source = "def fields(value):\n    return [" + ", ".join(f"({item})" for item in items) + "]"
+    exec(source, env)  # noqa: S102 - the source is built from the class's own field list
+    built.append(env["fields"])
+    _ENCODERS[cls] = env["fields"]
+    return env["fields"]
+
+
 def encode(msg: Any) -> bytes:
     """Serialize a registered message dataclass to bytes."""
     cls = type(msg)
     if getattr(cls, "TYPE_ID", None) not in _REGISTRY:
         raise TypeError(f"{cls.__name__} is not a registered message")
     body = [cls.TYPE_ID, cls.VERSION]
-    body.extend(_to_wire(getattr(msg, name)) for name, _ in _hints(cls))
+    body.extend(_fields_to_wire(cls)(msg))
     return msgpack.packb(body, use_bin_type=True)
 
 

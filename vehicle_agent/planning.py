@@ -243,6 +243,15 @@ class PathPlanner:
     replans: int = 0
     blocked: np.ndarray | None = None
     _route_raster: RouteRaster | None = None
+    _route_cum: np.ndarray | None = None
+    _path_end: tuple[np.ndarray, float] | None = None  # a path and progress_along(path, its last point)
+
+    @property
+    def route_cum(self) -> np.ndarray:
+        """``arc_lengths(route)``, computed once (the route never changes)."""
+        if self._route_cum is None:
+            self._route_cum = arc_lengths(self.route)
+        return self._route_cum
 
     def plan(self, grid: Grid, static_obstacles: np.ndarray, pose: Pose, speed_mps: float) -> np.ndarray:
         """A world-frame path (m, 2) from the vehicle toward the route ahead.
@@ -257,8 +266,8 @@ class PathPlanner:
             self._route_raster = RouteRaster(self.route, grid.spec.cell_m, cfg.corridor_m + 2.0)
         dist = self._route_raster.window(grid.i0, grid.j0, grid.state.shape[0])
         passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
-        s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]))
-        route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0))
+        s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]), self.route_cum)
+        route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0), self.route_cum)
         if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
             return self.path
         start = grid.cell_of(np.array([pose.x_m, pose.y_m]))
@@ -295,9 +304,12 @@ class PathPlanner:
         """The fast check: the old path's remaining cells are passable and it still leads ahead."""
         path = self.path
         s = progress_along(path, np.array([pose.x_m, pose.y_m]))
-        if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or progress_along(path, path[-1]) - s < 15.0:
+        if self._path_end is None or self._path_end[0] is not path:  # the path is kept while it stays good
+            self._path_end = (path, progress_along(path, path[-1]))
+        end = self._path_end[1]
+        if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or end - s < 15.0:
             return False
-        rc = grid.cell_of(point_at(path, s + np.arange(0.0, progress_along(path, path[-1]) - s, 0.5)))
+        rc = grid.cell_of(point_at(path, s + np.arange(0.0, end - s, 0.5)))
         n = grid.state.shape[0]
         inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
         return bool(passable[rc[inside, 0], rc[inside, 1]].all())
@@ -548,12 +560,12 @@ class Planner:
     def _onward(self, path: np.ndarray, cruise: float) -> np.ndarray:
         """``path`` continued along the route for as far as the shared horizon reaches at
         the cruise speed (the planned path ends ``lookahead_m`` ahead)."""
-        route = self.path_planner.route
-        s_end = progress_along(route, path[-1])
-        extra = min(cruise * SHARED_HORIZON_S, arc_lengths(route)[-1] - s_end)
+        route, cum = self.path_planner.route, self.path_planner.route_cum
+        s_end = progress_along(route, path[-1], cum)
+        extra = min(cruise * SHARED_HORIZON_S, cum[-1] - s_end)
         if extra < 1.0:
             return path
-        return np.vstack([path, point_at(route, s_end + np.arange(1.0, extra + 1e-9, 1.0))])
+        return np.vstack([path, point_at(route, s_end + np.arange(1.0, extra + 1e-9, 1.0), cum)])
 
     def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, obstacles: list[Obstacle],
                  pose: Pose, speed_mps: float, t_now_s: float) -> Plan:

@@ -910,3 +910,16 @@ def test_visible_share_equals_testing_every_occluder_on_every_ray(seed):
     self_target[self_target >= n_t] = -1
     args = (viewers, ranges, targets, corners, target_as_occluder.astype(np.int64), self_target.astype(np.int64), 9)
     np.testing.assert_array_equal(spatial._visible_share(*args), _visible_share_reference(*args))
+
+
+@given(dx=st.floats(-1e6, 1e6), dy=st.floats(-1e6, 1e6), bound=st.floats(-1.0, 2e6), nudge=st.integers(-3, 3))
+def test_the_cheap_distance_test_decides_as_hypot(dx, dy, bound, nudge):
+    """spatial._farther against np.hypot(dx, dy) > bound, also with the bound a few ulps
+    from the distance itself (where only hypot can tell)."""
+    from vehicle_agent.spatial import _farther
+
+    assert _farther(dx, dy, bound) == (np.hypot(dx, dy) > bound)
+    at = float(np.hypot(dx, dy))
+    for _ in range(abs(nudge)):
+        at = float(np.nextafter(at, np.inf if nudge > 0 else -np.inf))
+    assert _farther(dx, dy, at) == (np.hypot(dx, dy) > at)

@@ -179,6 +179,20 @@ def visibility(share: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def _farther(dx, dy, bound):
+    """``np.hypot(dx, dy) > bound``, deciding from the squares where they are clear by a
+    margin far above rounding (1e-12 relative) and asking hypot only in between."""
+    if not bound >= 0.0:
+        return np.hypot(dx, dy) > bound
+    d2, b2 = dx * dx + dy * dy, bound * bound
+    if d2 > b2 * (1.0 + 1e-12):
+        return True
+    if d2 < b2 * (1.0 - 1e-12):
+        return False
+    return np.hypot(dx, dy) > bound
+
+
+@njit(cache=True)
 def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, safety, window):
     """(J, K) index of the first sample time t at which j's body comes within ``safety``
     of k's body anywhere k is between t - ``window`` and t + ``window`` (from now on);
@@ -203,7 +217,7 @@ def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, saf
                 jx, jy = pos_j[j, t, 0], pos_j[j, t, 1]
                 # cheap reject: j's centre far from the whole segment k's centre sweeps
                 f = 0.0 if len2 <= 0.0 else min(max(((jx - ax) * ex + (jy - ay) * ey) / len2, 0.0), 1.0)
-                if np.hypot(jx - ax - f * ex, jy - ay - f * ey) > off_j + off_k + reach:
+                if _farther(jx - ax - f * ex, jy - ay - f * ey, off_j + off_k + reach):
                     continue
                 cj, sj = np.cos(head_j[j, t]), np.sin(head_j[j, t])
                 close = False

@@ -156,9 +156,20 @@ class LatticeRaster:
 
     def __init__(self, values: np.ndarray, i0: int, j0: int, fill) -> None:
         self.values, self.i0, self.j0, self.fill = values, i0, j0, fill
+        self._last: tuple[tuple[int, int, int], np.ndarray] | None = None
 
     def window(self, i0: int, j0: int, n: int) -> np.ndarray:
-        """The (n, n) values of the grid whose cell (0, 0) is lattice (i0, j0)."""
+        """The (n, n) values of the grid whose cell (0, 0) is lattice (i0, j0), read-only:
+        a vehicle that stands still asks for the same window every tick, and gets the
+        same array."""
+        if self._last is not None and self._last[0] == (i0, j0, n):
+            return self._last[1]
+        out = self._cut(i0, j0, n)
+        out.setflags(write=False)
+        self._last = ((i0, j0, n), out)
+        return out
+
+    def _cut(self, i0: int, j0: int, n: int) -> np.ndarray:
         out = np.full((n, n), self.fill, dtype=self.values.dtype)
         ny, nx = self.values.shape
         x0, y0 = i0 - self.i0, j0 - self.j0

@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 CURVES = ("shadowed", "logistic", "fixed")
 _GRID_POINTS = 4097
@@ -162,6 +163,34 @@ def keyed_uniform(seed: int, *keys: np.ndarray | int) -> np.ndarray:
         for a in arrays:
             h = _mix(h ^ (a + _GOLDEN))
     return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+@njit(cache=True)
+def _mix_one(x):
+    """``_mix`` of one uint64."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * _M1
+    x = x ^ (x >> np.uint64(27))
+    x = x * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True)
+def _keyed_uniform_1d(seed, tick, keys):
+    out = np.empty(len(keys))
+    head = _mix_one(_mix_one(seed + _GOLDEN) ^ (np.uint64(tick) + _GOLDEN))
+    for i in range(len(keys)):
+        h = _mix_one(head ^ (np.uint64(keys[i]) + _GOLDEN))
+        out[i] = np.float64(h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    return out
+
+
+def keyed_uniform_1d(seed: int, tick: int, keys: np.ndarray) -> np.ndarray:
+    """``keyed_uniform(seed, tick, keys)`` for one tick and a 1-D int64 ``keys``, in one
+    pass: the same hash, the same floats (numpy's elementwise version spent ~25 calls on
+    40 keys; the agents draw their grouping with it every interval)."""
+    return _keyed_uniform_1d(np.uint64(seed & 0xFFFFFFFFFFFFFFFF), np.int64(tick),
+                             np.ascontiguousarray(keys, dtype=np.int64))
 
 
 def bernoulli(p: np.ndarray, seed: int, *keys: np.ndarray | int) -> np.ndarray:

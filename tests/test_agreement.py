@@ -312,11 +312,10 @@ def test_config_checks_and_profile():
 @given(tick=st.integers(0, 2**31), vids=st.lists(st.integers(0, 2**40), max_size=50, unique=True),
        salt=st.integers(0, 2**64 - 1))
 def test_the_grouping_draws_are_the_channels_keyed_draws(tick, vids, salt):
-    """The agent's one-pass draws against channel_proxy.loss.keyed_uniform, bit for bit."""
-    from channel_proxy.loss import keyed_uniform
-    from vehicle_agent.agreement import _keyed_draws
+    """The one-pass draws against channel_proxy.loss.keyed_uniform, bit for bit."""
+    from channel_proxy.loss import keyed_uniform, keyed_uniform_1d
 
-    got = _keyed_draws(salt, tick, np.array(vids, dtype=np.int64))
+    got = keyed_uniform_1d(salt, tick, np.array(vids, dtype=np.int64))
     np.testing.assert_array_equal(got, keyed_uniform(salt, tick, np.array(vids, dtype=np.int64)))
 
 

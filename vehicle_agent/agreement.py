@@ -62,9 +62,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
-from channel_proxy.loss import PrrModel, link_probabilities
+from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
 from protocol.messages import ControlMsg
 from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
 
@@ -157,39 +156,8 @@ def group_of(member_vids: np.ndarray, tick: int, n: int) -> np.ndarray:
     if n <= 0:
         return np.full(len(vids), -1, dtype=np.int64)
     rank = np.empty(len(vids), dtype=np.int64)
-    rank[np.lexsort((vids, _keyed_draws(GROUPING_SALT, tick, vids)))] = np.arange(len(vids))
+    rank[np.lexsort((vids, keyed_uniform_1d(GROUPING_SALT, tick, vids)))] = np.arange(len(vids))
     return rank % n
-
-
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # channel_proxy.loss's splitmix64 constants
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-
-
-@njit(cache=True)
-def _mix(x):
-    """``channel_proxy.loss._mix`` on one uint64."""
-    x = x ^ (x >> np.uint64(30))
-    x = x * _M1
-    x = x ^ (x >> np.uint64(27))
-    x = x * _M2
-    return x ^ (x >> np.uint64(31))
-
-
-@njit(cache=True)
-def _keyed_draws_kernel(seed, tick, vids):
-    out = np.empty(len(vids))
-    head = _mix(_mix(np.uint64(seed) + _GOLDEN) ^ (np.uint64(tick) + _GOLDEN))
-    for i in range(len(vids)):
-        out[i] = np.float64(_mix(head ^ (np.uint64(vids[i]) + _GOLDEN)) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
-    return out
-
-
-def _keyed_draws(seed: int, tick: int, vids: np.ndarray) -> np.ndarray:
-    """``keyed_uniform(seed, tick, vids)`` for one tick and 1-D vids, in one pass (the
-    same integer hash, the same floats; numpy spent ~25 calls on 40 members)."""
-    return _keyed_draws_kernel(np.uint64(seed & 0xFFFFFFFFFFFFFFFF), np.int64(tick),
-                               np.ascontiguousarray(vids, dtype=np.int64))
 
 
 def frames_of(group: int, n: int, n_frames: int) -> tuple[int, ...]:

@@ -343,7 +343,8 @@ def _record_converter(cls: type) -> Converter:
              "    try:"]
     for i, (conv, (_, hint)) in enumerate(zip(convs, hints)):
         env[f"c{i}"] = conv
-        lines += [f"        at = {i}", f"        v = values[{i}]", f"        a{i} = {_inline(hint, f'c{i}') or f'c{i}(v)'}"]
+        expr = _inline(hint, f"c{i}") or f"c{i}(v)"
+        lines += [f"        at = {i}", f"        v = values[{i}]", f"        a{i} = {expr}"]
     if not names:
         lines.append("        pass")
     lines += ["    except _FieldError as err:",

@@ -166,7 +166,8 @@ class Tracker:
             rx, ry = rx - vx, ry - vy
             x, y = x + g0 * rx, y + g0 * ry
             vx, vy = vx + g1 * rx, vy + g1 * ry
-            p00, p01, p10, p11 = p00 - g0 * p10, p01 - g0 * p11, p10 - g1 * p10, p11 - g1 * p11  # P - outer(gain, P[1, :])
+            # P - outer(gain, P[1, :])
+            p00, p01, p10, p11 = p00 - g0 * p10, p01 - g0 * p11, p10 - g1 * p10, p11 - g1 * p11
         tr.xy = np.array([x, y])
         tr.filtered_velocity = np.array([vx, vy])
         tr.cov = np.array([[p00, p01], [p10, p11]])

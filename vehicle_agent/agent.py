@@ -16,11 +16,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
 from vehicle_agent.control import VehicleController
 from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
+from vehicle_agent.perception import exact_inverse
 from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
 
 
@@ -110,7 +112,8 @@ class Agent:
         if not len(movers):
             return obstacles, moving
         xy = movers.points[:, :2]
-        lo, hi = np.minimum.reduceat(xy, movers.starts, axis=0), np.maximum.reduceat(xy, movers.starts, axis=0)
+        starts = movers.starts
+        lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
         center, extent = (lo + hi) / 2, hi - lo
         vel = movers.velocity
         length = np.maximum(extent.max(axis=1), 1.0).tolist()
@@ -118,7 +121,7 @@ class Agent:
         heading = np.arctan2(vel[:, 1], vel[:, 0]).tolist()
         for i in range(len(movers)):
             obstacles.append(Obstacle(center[i], vel[i], length[i], width[i], view.t_sim_s, heading[i]))
-        _mark(moving, grid, xy)
+        _mark(moving, grid, movers.points)  # x and y of each point
         return obstacles, moving
 
 
@@ -135,10 +138,30 @@ def timed(timings_ms: dict[str, float], stage: str):
 
 
 def _mark(mask: np.ndarray, grid, xy: np.ndarray) -> None:
-    rc = grid.cell_of(xy)
+    """Set the cells of ``mask`` (the grid's) that the points ``xy`` (world, x and y
+    first, (m, 2) or (m, 3)) fall in:
+    ``grid.cell_of``'s cells, in one pass (its numpy statements took ~0.4 ms per tick
+    for the ~10 000 points of the received movers at 40 vehicles)."""
+    _mark_cells(np.ascontiguousarray(xy, dtype=np.float64), grid.i0, grid.j0, grid.spec.cell_m,
+                exact_inverse(grid.spec.cell_m), mask)
+
+
+@njit(cache=True)
+def _mark_cells(xy, i0, j0, cell, inv, mask):
+    """``grid.cell_of`` (floor of x / cell, y / cell, minus the grid's origin) of every
+    point (columns 0 and 1 of ``xy``), and its cell set where it lies in the grid;
+    ``inv``: ``exact_inverse(cell)``."""
     n = mask.shape[0]
-    ok = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-    mask[rc[ok, 0], rc[ok, 1]] = True
+    for p in range(xy.shape[0]):
+        if inv > 0.0:
+            fx, fy = np.floor(xy[p, 0] * inv), np.floor(xy[p, 1] * inv)
+        else:
+            fx, fy = np.floor(xy[p, 0] / cell), np.floor(xy[p, 1] / cell)
+        if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
+            continue
+        row, col = np.int64(fy) - j0, np.int64(fx) - i0
+        if 0 <= row < n and 0 <= col < n:
+            mask[row, col] = True
 
 
 def _retimed(traj: np.ndarray, t_now_s: float) -> np.ndarray:

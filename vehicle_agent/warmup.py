@@ -15,7 +15,7 @@ import numpy as np
 
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
-from vehicle_agent.agent import Agent
+from vehicle_agent.agent import Agent, _mark_cells
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
@@ -47,6 +47,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     _warm_conflict(agent)
     _warm_registration()
     warm_fusion_kernels()
+    _mark_cells(np.zeros((1, 2)), 0, 0, 0.5, 2.0, np.zeros((2, 2), dtype=np.bool_))  # movers' cells: none here
     key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous
     oid = np.zeros(1, dtype=np.int64)
     key.setflags(write=False)

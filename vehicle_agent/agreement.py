@@ -118,8 +118,12 @@ def members(ballots: Mapping[int, Iterable[int]], quorum: float) -> np.ndarray:
     no_repeats = _each_ascending(vid, lengths)
     others = vid != author
     vid, author = vid[others], author[others]
-    if no_repeats:
-        vids, votes = np.unique(vid, return_counts=True)  # no ballot lists a vehicle twice: one vote per entry
+    if no_repeats and (not len(vid) or (vid.min() >= 0 and vid.max() < 1 << 16)):
+        counted = np.bincount(vid)  # no ballot lists a vehicle twice: one vote per entry
+        vids = np.flatnonzero(counted)
+        votes = counted[vids]
+    elif no_repeats:
+        vids, votes = np.unique(vid, return_counts=True)
     else:
         order = np.lexsort((author, vid))  # a ballot listing a vehicle twice still votes once
         vid, author = vid[order], author[order]

@@ -32,7 +32,6 @@ from vehicle_agent.agreement import AgreementConfig, decide, unscheduled_after
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.link import V2VLink
-from vehicle_agent.memory import keep_freed_memory
 from vehicle_agent.scheduler import UnknownSchedulerError
 from vehicle_agent.scheduler import get as get_scheduler
 from vehicle_agent.warmup import warm_up
@@ -104,7 +103,6 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     run, vid = args.run_id, args.vid
     drops = DropCounter()
     scans: queue.Queue[Scan] = queue.Queue()
-    keep_freed_memory()  # the same large arrays every interval: no page faults for them each time
     deadline = time.monotonic() + args.startup_timeout_s
     try:
         mapmsg = _ask(session, keys.world_map(run), MapMsg, deadline, drops)

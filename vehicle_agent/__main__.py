@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import faulthandler
+import gc
 import json
 import logging
 import os
@@ -185,6 +186,15 @@ class ProcessCpu:
         self.thread_names: dict[int, str] = {}
         self.threads_first: dict[str, float] = {}
         self.threads_last: dict[str, float] = {}
+        self.gc_s = self.gc_first = self.gc_last = 0.0  # the cyclic garbage collector's CPU time, any thread
+        self._gc_started: dict[int, float] = {}
+        gc.callbacks.append(self._on_gc)
+
+    def _on_gc(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._gc_started[threading.get_ident()] = time.thread_time()
+        else:
+            self.gc_s += time.thread_time() - self._gc_started.pop(threading.get_ident(), time.thread_time())
 
     @staticmethod
     def _now() -> tuple[float, float, float, int]:
@@ -219,8 +229,10 @@ class ProcessCpu:
     def tick_done(self) -> None:
         self.ticks += 1
         self.last = self._now()
+        self.gc_last = self.gc_s
         if self.first is None:
             self.first = self.last
+            self.gc_first = self.gc_s
             self.thread_names = self._thread_names()
             self.threads_first = self._threads()
         self.threads_last = self._threads()
@@ -228,7 +240,8 @@ class ProcessCpu:
     def summary(self) -> dict[str, float]:
         """``proc_cpu``: whole-process CPU ms per tick; ``proc_main_cpu``: the main
         thread's; ``proc_sys_cpu``: the system part of ``proc_cpu``; ``proc_minflt``: minor
-        page faults per tick; ``thread_<name>_cpu``: per thread name (the threads that ran
+        page faults per tick; ``proc_gc_cpu``: the garbage collector's CPU per tick (any
+        thread); ``thread_<name>_cpu``: per thread name (the threads that ran
         at the first tick: Zenoh's ``rx-0``, ``net-0``, ...; ours ``python``), ms per tick,
         over the same ticks."""
         if self.first is None or self.last is None or self.ticks < 2:
@@ -237,7 +250,8 @@ class ProcessCpu:
         out = {"proc_cpu": round((self.last[0] - self.first[0]) * 1e3 / n, 3),
                "proc_main_cpu": round((self.last[1] - self.first[1]) * 1e3 / n, 3),
                "proc_sys_cpu": round((self.last[2] - self.first[2]) * 1e3 / n, 3),
-               "proc_minflt": round((self.last[3] - self.first[3]) / n, 1), "proc_ticks": n}
+               "proc_minflt": round((self.last[3] - self.first[3]) / n, 1),
+               "proc_gc_cpu": round((self.gc_last - self.gc_first) * 1e3 / n, 3), "proc_ticks": n}
         for name, cpu_s in sorted(self.threads_last.items()):
             out[f"thread_{name}_cpu"] = round((cpu_s - self.threads_first.get(name, 0.0)) * 1e3 / n, 3)
         return out

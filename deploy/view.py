@@ -34,7 +34,8 @@ from mcap.reader import make_reader
 
 from deploy.recorder import MESSAGE_ENCODING, METADATA_NAME, mirror_file, read_messages, read_metadata
 from protocol.codec import MalformedMessage, decode
-from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
+from protocol.security import opened
+from protocol.messages import (Signed, AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
                                EmpBundle, EmpUpload, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Tick,
                                VehicleSpec, WorldTruth)
 from vehicle_agent.frames import sensor_to_world
@@ -237,6 +238,8 @@ class Scene:
                          EmpBundle: self.emp_bundle}
 
     def add(self, topic: str, msg: object) -> None:
+        if isinstance(msg, Signed):  # a vehicle's signed message: shown as what it says (not checked here)
+            msg = opened(msg)
         handler = self.handlers.get(type(msg))
         if handler is None:
             return

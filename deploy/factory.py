@@ -212,6 +212,7 @@ class Factory:
         self._lock = threading.RLock()
         self._children: dict[int, ForkedProcess] = {}
         self._replies: list[dict] = []
+        self._unclaimed: dict[int, dict] = {}  # exits reported before the spawn reply was read
         self.alive = True
         self.closed = False
         log.debug("process factory: zygote pid %d (%s)", pid, start)
@@ -234,12 +235,15 @@ class Factory:
             with self._lock:
                 self._send(req, fds)
                 reply = self._reply()
+                if "error" in reply:
+                    raise FactoryError(f"the zygote could not start {module}: {reply['error']}")
+                proc = ForkedProcess(self, reply["pid"], [sys.executable, "-m", module, *args])
+                self._children[proc.pid] = proc
+                early = self._unclaimed.pop(proc.pid, None)  # it exited before we knew it
+                if early is not None:
+                    proc._exited(early["rc"], early["cpu_s"], early["maxrss_kib"])
         finally:
             os.close(devnull)
-        if "error" in reply:
-            raise FactoryError(f"the zygote could not start {module}: {reply['error']}")
-        proc = ForkedProcess(self, reply["pid"], [sys.executable, "-m", module, *args])
-        self._children[proc.pid] = proc
         return proc
 
     def _send(self, msg: dict, fds: Sequence[int] = ()) -> None:
@@ -280,10 +284,12 @@ class Factory:
                 msg = json.loads(data)
                 if msg.get("op") == "exit":
                     child = self._children.get(msg["pid"])
-                    if child is not None:
-                        child._exited(msg["rc"], msg["cpu_s"], msg["maxrss_kib"])
-                        log.debug("pid %d (%s) exited: code %d, %.2f s CPU, peak RSS %d MiB", msg["pid"],
-                                  child.args[2], msg["rc"], msg["cpu_s"], msg["maxrss_kib"] // 1024)
+                    if child is None:  # a child that exited at once: its exit can come in the
+                        self._unclaimed[msg["pid"]] = msg  # same read as the reply that names it
+                        continue
+                    child._exited(msg["rc"], msg["cpu_s"], msg["maxrss_kib"])
+                    log.debug("pid %d (%s) exited: code %d, %.2f s CPU, peak RSS %d MiB", msg["pid"],
+                              child.args[2], msg["rc"], msg["cpu_s"], msg["maxrss_kib"] // 1024)
                 else:
                     self._replies.append(msg)
 

@@ -491,16 +491,27 @@ def safe_table_md(records: Sequence[dict[str, Any]]) -> list[str]:
     return _md(["scheme", *[f"{n} vehicles" for n in densities], "all"], rows)
 
 
+def coverage(records: Sequence[dict[str, Any]], plan: dict[str, Any] | None) -> str:
+    """What the directory holds against its last plan. A directory can hold several plans'
+    runs (a sweep widened or narrowed later, e.g. more densities for one scenario), and
+    ``plan.json`` is the last one: runs are counted by key, not by number."""
+    n_judged = len(judged(records))
+    text = f"{len(records)} runs recorded ({n_judged} judged, {len(records) - n_judged} failed)"
+    if not plan or not plan.get("runs"):
+        return text + "."
+    planned = {r["run_key"] for r in plan["runs"]}
+    recorded = {r["run_key"] for r in records}
+    text += (f"; the last plan (`plan.json`, git revision {plan.get('git_revision', 'unknown')}) has "
+             f"{len(planned)} runs, {len(planned - recorded)} of them not run yet")
+    earlier = len(recorded - planned)
+    return text + (f"; {earlier} recorded runs are from earlier plans." if earlier else ".")
+
+
 def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[str, Any] | None,
                delay: dict[str, DelayRow], delay_vehicles: int | None, delay_note: str) -> str:
     name = (plan or {}).get("spec", {}).get("name", sweep_dir.name)
-    planned = len((plan or {}).get("runs", [])) or len(records)
-    n_judged = len(judged(records))
     lines = [f"# Sweep report: {name}", "",
-             f"`{sweep_dir}`: {planned} runs planned, {len(records)} recorded ({n_judged} judged, "
-             f"{len(records) - n_judged} failed), {max(0, planned - len(records))} not run yet. "
-             f"Git revision {(plan or {}).get('git_revision', 'unknown')}; report written "
-             f"{time.strftime('%Y-%m-%d %H:%M')}.", "",
+             f"`{sweep_dir}`: {coverage(records, plan)} Report written {time.strftime('%Y-%m-%d %H:%M')}.", "",
              "Figures: " + ", ".join(f"[{f}]({f})" for f in FIGURES) + ".", "",
              "Shares are of judged runs; failed runs (no outcome) are counted apart.", ""]
 

@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     if what == "raise":
         raise RuntimeError("the probe fails on purpose")
     if what == "wait":
+        # Own SIGINT, as every process of ours does: a non-interactive shell that starts the
+        # suite in the background ignores SIGINT, and a new interpreter would inherit that.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         print("waiting", flush=True)
         threading.Event().wait()
     if what == "zenoh":

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -74,6 +75,24 @@ def test_a_forked_child_is_its_own_process_with_its_own_log(factory, tmp_path):
     assert f"{sys.executable} -m factory_probe ids" in ids["cmdline"]  # what Popen's child would show
     assert stderr == "probe stderr line"  # stdout and stderr in the one log
     assert proc.cpu_s is not None and proc.cpu_s >= 0.0
+
+
+def test_a_child_that_exits_before_its_spawn_is_answered_is_still_reaped(factory):
+    """The zygote reports a child's exit right after the reply that names it; a child that
+    exits at once can have both read in one go, before the owner knows the pid. Here the
+    owner reads the exit before it registers the child, every time: it waits (on the
+    socket, not the clock) for the zygote's report between reading the reply and using it."""
+    read_reply = factory._reply
+
+    def reply_read_after_the_exit_is_reported() -> dict:
+        reply = read_reply()
+        select.select([factory._sock], [], [], 60.0)  # the exit report is the next message
+        factory.pump(0.0)
+        return reply
+
+    factory._reply = reply_read_after_the_exit_is_reported
+    proc = factory.spawn("factory_probe", ["exit", "5"])
+    assert proc.wait(timeout=60) == 5
 
 
 @pytest.mark.parametrize("args, sig, expected", [

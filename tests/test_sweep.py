@@ -112,17 +112,29 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
 def test_estimate_interpolates_the_measured_model(monkeypatch):
     monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {10: 10.0, 20: 20.0})
     monkeypatch.setattr(sweep, "MODEL_TICK_S", {10: 0.1, 20: 0.3})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", 10.0)
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})
     key = RunKey("left_turn", 15, 30.0, 0.0, "autocast", 0, 20.0)
     assert sweep.estimate_run_s(key) == pytest.approx(15.0 + 100 * 0.2)  # 10 s of sim = 100 ticks
     short = RunKey("left_turn", 30, 30.0, 0.0, "autocast", 0, 5.0)  # beyond the table: linear; 50 ticks
     assert sweep.estimate_run_s(short) == pytest.approx(30.0 + 50 * 0.5)
 
 
+def test_estimate_takes_each_scenarios_typical_end(monkeypatch):
+    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {10: 0.0, 20: 0.0})
+    monkeypatch.setattr(sweep, "MODEL_TICK_S", {10: 0.1, 20: 0.1})
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"overtaking": 20.0, "red_light": 8.0})
+    monkeypatch.setattr(sweep, "TYPICAL_END_OTHER_S", 12.0)
+    run = lambda scenario, limit: sweep.estimate_run_s(RunKey(scenario, 10, 30.0, 0.0, "autocast", 0, limit))
+    assert run("overtaking", 40.0) == pytest.approx(200 * 0.1)
+    assert run("red_light", 40.0) == pytest.approx(80 * 0.1)
+    assert run("overtaking", 5.0) == pytest.approx(50 * 0.1)  # never beyond the time limit
+    assert run("my_scenario", 40.0) == pytest.approx(120 * 0.1)  # one the model has not seen
+
+
 def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
     monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 10: 5.0})
     monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 10: 0.1})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", 10.0)  # every autocast run: 5 + 100 x 0.1 = 15 s
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 5 + 100 x 0.1 = 15 s
     key = RunKey("left_turn", 5, 30.0, 0.0, "autocast", 0, 20.0)
     measured = [{"run_key": "x", "status": "judged", "scenario": "left_turn", "vehicles": 5, "collider_speed_kmh": 30.0, "delta_s": 0.0,
                  "scheme": "autocast", "seed": s, "duration_s": 20.0, "wall_total_s": w}
@@ -240,6 +252,16 @@ def test_spearman_and_delay_table():
     assert [float(np.median(g.delays_ms)) for g in groups] == pytest.approx([95.0, 80.0, 65.0, 50.0])
 
 
+def test_the_report_counts_runs_against_the_last_plan_by_key():
+    rec = lambda key, status="judged": {"run_key": key, "status": status, "outcome": "safe" if status == "judged" else None}
+    plan = {"git_revision": "abc", "runs": [{"run_key": k} for k in ("b", "c", "d")]}
+    records = [rec("a"), rec("b"), rec("c", "failed")]  # "a" from an earlier plan; "d" not run yet
+    assert report.coverage(records, plan) == ("3 runs recorded (2 judged, 1 failed); the last plan (`plan.json`, "
+                                              "git revision abc) has 3 runs, 1 of them not run yet; 1 recorded "
+                                              "runs are from earlier plans.")
+    assert report.coverage(records, None) == "3 runs recorded (2 judged, 1 failed)."
+
+
 def test_report_of_an_empty_sweep_says_no_data(tmp_path):
     (tmp_path / "results.jsonl").write_text("")
     assert report.main([str(tmp_path)]) == 0
@@ -295,7 +317,8 @@ def test_smoke_sweep_resume_and_report(tmp_path):
     summary = (out / "report" / "summary.md").read_text()
     assert "| scheme | 5 vehicles | all |" in summary
     assert "| single | " in summary and "| autocast | " in summary
-    assert "2 runs planned, 2 recorded (2 judged, 0 failed)" in summary
+    assert "2 runs recorded (2 judged, 0 failed); the last plan (`plan.json`, git revision" in summary
+    assert "has 2 runs, 0 of them not run yet." in summary
 
 
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):

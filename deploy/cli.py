@@ -15,7 +15,8 @@ from bench import HEADLINE_KEYS
 
 BENCHES = tuple(HEADLINE_KEYS)
 # command -> module whose ``main(argv) -> int`` runs it
-SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "deploy": "deploy.hosts"}
+SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "export": "deploy.export",
+               "deploy": "deploy.hosts"}
 
 USAGE = """usage: autocast <command> [args]
 
@@ -28,6 +29,8 @@ commands:
                          (autocast sweep --help)
   report SWEEP_DIR       the paper's tables and plots from a sweep's results
   view RUN.mcap          a rerun recording of a run (--save out.rrd for headless use)
+  export RUN.mcap --foxglove OUT.mcap
+                         the run's scene in Foxglove's schemas (its 3-D panel)
   deploy [flags]         start a run's processes spread over several hosts
                          (autocast deploy --help)
   bench NAME [--quick]   print benchmark figures; NAME is one of: {benches}

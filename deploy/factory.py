@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import gc
+import importlib
 import io
 import json
 import logging
@@ -177,11 +178,15 @@ class ForkedProcess:
 class Factory:
     """A zygote forked from this process, and the handles of the children it forked."""
 
-    def __init__(self, preload: Sequence[str] = RUN_MODULES, start: str = "fork") -> None:
+    def __init__(self, preload: Sequence[str] = RUN_MODULES, start: str = "fork",
+                 stop_grace_s: float = STOP_GRACE_S) -> None:
         """``start="fork"``: the zygote is a fork of this process, warm with all it has
         loaded (refused where that is unsafe, see ``fork_unsafe_reason``); ``"exec"``: a
         fresh interpreter (``python -m deploy.factory``) that imports ``preload``, for an
-        owner that cannot fork (it has a Zenoh session); its children load their kernels."""
+        owner that cannot fork (it has a Zenoh session, or threads: a Dask worker); its
+        children load their kernels, unless a ``"module:function"`` entry of ``preload``
+        loaded them in the zygote (called after the import). ``stop_grace_s``: how long
+        the children get after SIGINT when the owner goes, before SIGKILL."""
         if start not in ("fork", "exec"):
             raise ValueError(f"start: {start!r} is not fork or exec")
         reason = fork_unsafe_reason() if start == "fork" else None
@@ -190,7 +195,8 @@ class Factory:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._popen: subprocess.Popen | None = None
         if start == "exec":
-            self._popen = subprocess.Popen([sys.executable, "-m", "deploy.factory", str(theirs.fileno()), *preload],
+            self._popen = subprocess.Popen([sys.executable, "-m", "deploy.factory", str(theirs.fileno()),
+                                            f"--stop-grace-s={stop_grace_s!r}", *preload],
                                            pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
                                            stdout=subprocess.DEVNULL)
             pid = self._popen.pid
@@ -201,7 +207,7 @@ class Factory:
                 code = 1
                 try:
                     ours.close()
-                    code = _Zygote(theirs, tuple(preload)).serve()
+                    code = _Zygote(theirs, tuple(preload), stop_grace_s).serve()
                 except BaseException:
                     traceback.print_exc()
                 finally:
@@ -357,10 +363,11 @@ def _reap(pid: int, deadline: float) -> None:
 class _Zygote:
     """Single-threaded: forks on request, reaps and reports, stops all when its owner goes."""
 
-    def __init__(self, sock: socket.socket, preload: tuple[str, ...]) -> None:
+    def __init__(self, sock: socket.socket, preload: tuple[str, ...], stop_grace_s: float = STOP_GRACE_S) -> None:
         global _current
         _current = None
         self.sock = sock
+        self.stop_grace_s = stop_grace_s
         self.children: set[int] = set()
         os.setpgid(0, 0)  # out of the owner's group: its Ctrl-C or SIGKILL of the group is not ours
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -377,9 +384,12 @@ class _Zygote:
         os.set_blocking(self.wake_w, False)
         signal.set_wakeup_fd(self.wake_w)
         signal.signal(signal.SIGCHLD, lambda *_: None)  # wakes the select through the wakeup fd
-        for name in preload:
+        for name in preload:  # "module", or "module:function" to call after the import (a warm-up)
+            module, _, function = name.partition(":")
             try:
-                __import__(name)
+                loaded = importlib.import_module(module)
+                if function:
+                    getattr(loaded, function)()
             except Exception:  # the child will raise it where it can be seen, in its log
                 log.debug("zygote: cannot preload %s", name, exc_info=True)
         gc.freeze()
@@ -468,7 +478,7 @@ class _Zygote:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         for pid in list(self.children):
             _killpg(pid, signal.SIGINT)
-        deadline = time.monotonic() + STOP_GRACE_S
+        deadline = time.monotonic() + self.stop_grace_s
         while self.children and time.monotonic() < deadline:
             self._reap()
             time.sleep(0.02)
@@ -633,13 +643,16 @@ def _flush_std_streams() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m deploy.factory FD [MODULE ...]``: serve as a zygote on the socket FD,
-    after importing the modules (``Factory(start="exec")`` starts it)."""
+    """``python -m deploy.factory FD [--stop-grace-s=S] [MODULE ...]``: serve as a zygote
+    on the socket FD, after importing the modules (``Factory(start="exec")`` starts it)."""
     argv = sys.argv[1:] if argv is None else argv
     if not argv or not argv[0].isdigit():
         print(main.__doc__, file=sys.stderr)
         return 2
-    return _Zygote(socket.socket(fileno=int(argv[0])), tuple(argv[1:])).serve()
+    fd, rest, grace_s = int(argv[0]), argv[1:], STOP_GRACE_S
+    if rest and rest[0].startswith("--stop-grace-s="):
+        grace_s, rest = float(rest[0].partition("=")[2]), rest[1:]
+    return _Zygote(socket.socket(fileno=fd), tuple(rest), grace_s).serve()
 
 
 if __name__ == "__main__":

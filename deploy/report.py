@@ -198,6 +198,41 @@ def delay_runs(records: Sequence[dict[str, Any]], vehicles: int | None, per_sche
     return vehicles, {s: rs for s, rs in out.items() if rs}
 
 
+def mcap_of(sweep_dir: Path, plan: dict[str, Any] | None, record: dict[str, Any]) -> Path | None:
+    """A run's MCAP where this machine sees it: under the sweep (``runs/<run id>``), under
+    the plan's ``runs_dir`` (``--runs-dir``, a cluster's shared directory), or where the
+    run wrote it; None if none exists (deleted, or on a worker's own disk)."""
+    candidates = [sweep_dir / "runs" / record["run_id"] / "run.mcap"]
+    if (plan or {}).get("runs_dir"):
+        candidates.append(Path(plan["runs_dir"]) / record["run_id"] / "run.mcap")
+    if record.get("mcap"):
+        candidates.append(Path(record["mcap"]))
+    return next((c for c in candidates if c.is_file()), None)
+
+
+def missing_mcaps_note(missing: Sequence[dict[str, Any]], plan: dict[str, Any] | None) -> str:
+    """Which runs' MCAPs the scheduled-delay plot lacks, and why if the record says."""
+    if not missing:
+        return ""
+    deleted = [r["run_id"] for r in missing if r.get("mcap_deleted_mb")]
+    absent = [r for r in missing if not r.get("mcap_deleted_mb")]
+    parts = []
+    if deleted:
+        parts.append(f"{len(deleted)} deleted after the run for their size (`mcap_limit_mb`): {_ids(deleted)}")
+    if absent:
+        hosts = sorted({r["host"] for r in absent if r.get("host")})
+        where = (f" (they ran on {', '.join(hosts)}; their runs directory, "
+                 f"`{(plan or {}).get('runs_dir', 'runs/')}`, is not shared with this machine?)" if hosts else "")
+        parts.append(f"{len(absent)} not found on this machine{where}: {_ids([r['run_id'] for r in absent])}")
+    return (f"scheduled_delay.png lacks the MCAPs of {len(missing)} of the runs chosen for it: "
+            + "; ".join(parts) + ".")
+
+
+def _ids(run_ids: Sequence[str], shown: int = 8) -> str:
+    more = f" and {len(run_ids) - shown} more" if len(run_ids) > shown else ""
+    return ", ".join(f"`{r}`" for r in run_ids[:shown]) + more
+
+
 def spearman(x: Sequence[float], y: Sequence[float]) -> float | None:
     """Rank correlation (ties share their mean rank); None when undefined."""
     if len(x) < 3:
@@ -603,15 +638,21 @@ def main(argv: list[str] | None = None) -> int:
 
     vehicles, chosen = delay_runs(records, args.delay_vehicles, args.delay_runs)
     by_scheme: dict[str, tuple[int, list[Sent]]] = {}
+    missing: list[dict[str, Any]] = []
     for scheme, runs in chosen.items():
         sent, read = [], 0
         for r in runs:
-            mcap = args.sweep_dir / "runs" / r["run_id"] / "run.mcap"
-            if mcap.exists():
-                sent += schedule_of_run(mcap)
-                read += 1
+            mcap = mcap_of(args.sweep_dir, plan, r)
+            if mcap is None:
+                missing.append(r)
+                continue
+            sent += schedule_of_run(mcap)
+            read += 1
         if read:
             by_scheme[scheme] = (read, sent)
+    lacking = missing_mcaps_note(missing, plan)
+    if lacking:
+        log.warning("%s", lacking)
     if by_scheme:
         why = ""
         note = (f"From the runs' MCAPs (up to {args.delay_runs} runs per scheme at {vehicles} vehicles): each "
@@ -623,6 +664,8 @@ def main(argv: list[str] | None = None) -> int:
         why = ("no judged V2V run (agnostic, autocast, autocast-fptas)" if not chosen
                else "the V2V runs' MCAPs are missing")
         note = f"No data: {why}."
+    if lacking:
+        note += " " + lacking
     plot_scheduled_delay(by_scheme, vehicles if by_scheme else None, out / "scheduled_delay.png", why)
 
     (out / "summary.md").write_text(summary_md(args.sweep_dir, records, plan, delay_table(by_scheme),

@@ -11,10 +11,12 @@ JSON line (flushed and fsynced): the same command again skips every run already
 recorded, so a sweep stopped at any point resumes where it stopped.
 
 Outputs in the sweep directory: ``plan.json`` (the matrix, settings, estimate),
-``results.jsonl``, ``runs/<run id>/`` (each run's own outputs, see docs/running.md),
-``logs/<run id>.out|.err`` (each launcher's stdout and stderr). Exit code: 0 every
-planned run judged, 1 some run failed (recorded with its error), 2 bad input, 130
+``results.jsonl``, ``runs/<run id>/`` (each run's own outputs, see docs/running.md;
+``--runs-dir`` puts them elsewhere), ``logs/<run id>.out|.err`` (each launcher's stdout
+and stderr). Exit code: 0 every planned run judged, 1 some run failed (recorded with
+its error), 2 bad input, 3 the cluster's scheduler was lost (``--cluster``), 130
 interrupted (Ctrl-C: the running launchers stop their processes; nothing is left).
+With ``--cluster`` each run is a task on a Dask worker instead (``deploy/cluster.py``).
 """
 
 from __future__ import annotations
@@ -511,10 +513,11 @@ def _terminal_columns() -> int:
 class Sweep:
     """Runs the planned keys that are not recorded yet, ``jobs`` at a time within the vehicle budget."""
 
-    def __init__(self, spec: SweepSpec, out: Path, jobs: int, vehicle_budget: int) -> None:
+    def __init__(self, spec: SweepSpec, out: Path, jobs: int, vehicle_budget: int,
+                 runs_dir: Path | None = None) -> None:
         self.spec, self.out = spec, out
         self.jobs, self.vehicle_budget = jobs, vehicle_budget
-        self.runs_dir, self.logs_dir, self.results = out / "runs", out / "logs", out / RESULTS
+        self.runs_dir, self.logs_dir, self.results = runs_dir or out / "runs", out / "logs", out / RESULTS
         self.running: list[Job] = []
         self.model_done_s = self.model_pending_s = 0.0
         self.warm = False  # the sweep warmed the numba caches: runs skip it
@@ -583,10 +586,7 @@ class Sweep:
     def _start(self, key: RunKey) -> None:
         run_id = self._run_id(key)
         out_path, err_path = self.logs_dir / f"{run_id}.out", self.logs_dir / f"{run_id}.err"
-        argv = [sys.executable, "-m", "deploy.cli", "run", *key.run_flags(), "--json", "--out", str(self.runs_dir),
-                "--run-id", run_id, "--scans", self.spec.scans, "--timeout-s", repr(self.spec.timeout_s),
-                "--agent-timeout-s", repr(self.spec.agent_timeout_s),
-                "--log-level", "WARNING", *(["--no-warm-up"] if self.warm else [])]
+        argv = [sys.executable, "-m", "deploy.cli", *launcher_args(self.spec, key, run_id, self.runs_dir, self.warm)]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         factory = process_factory.current()
         with open(out_path, "wb") as out, open(err_path, "wb") as err:
@@ -611,7 +611,8 @@ class Sweep:
         if timed_out:
             stderr += (f"\nautocast sweep: the launcher did not exit within {self.spec.timeout_s + LAUNCHER_SLACK_S:.0f} s;"
                        " killed it and its processes")
-        extra = {"cpu_s": None if job.cpu_s is None else round(job.cpu_s, 1), **self._limit_mcap(job.run_id)}
+        extra = {"cpu_s": None if job.cpu_s is None else round(job.cpu_s, 1),
+                 **limit_mcap(self.runs_dir / job.run_id, self.spec.mcap_limit_mb)}
         rec = record_of(job.key, job.run_id, rc, stdout, stderr, wall_s, extra)
         if timed_out:
             rec["status"] = "failed"
@@ -619,19 +620,6 @@ class Sweep:
                             "stderr_tail": stderr[-STDERR_TAIL_CHARS:]}
         append_record(self.results, rec)
         return rec
-
-    def _limit_mcap(self, run_id: str) -> dict[str, Any]:
-        """Delete an MCAP beyond ``mcap_limit_mb`` (an EMP run logs every uploaded point
-        cloud: ~300 MB at 5 vehicles); the record says so."""
-        mcap = self.runs_dir / run_id / "run.mcap"
-        try:
-            size_mb = mcap.stat().st_size / 1e6
-        except OSError:
-            return {}
-        if size_mb <= self.spec.mcap_limit_mb:
-            return {}
-        mcap.unlink()
-        return {"mcap": None, "mcap_deleted_mb": round(size_mb, 1)}
 
     # ------------------------------------------------------------------ stopping
 
@@ -660,6 +648,27 @@ class Sweep:
             _signal_group(job.proc.pid, signal.SIGKILL)
             job.proc.wait()
             kill_run_processes(self.runs_dir / job.run_id, job.run_id)
+
+
+def launcher_args(spec: SweepSpec, key: RunKey, run_id: str, runs_dir: Path, warm: bool) -> list[str]:
+    """``autocast run``'s arguments for one run of the sweep (after ``python -m deploy.cli``)."""
+    return ["run", *key.run_flags(), "--json", "--out", str(runs_dir), "--run-id", run_id, "--scans", spec.scans,
+            "--timeout-s", repr(spec.timeout_s), "--agent-timeout-s", repr(spec.agent_timeout_s),
+            "--log-level", "WARNING", *(["--no-warm-up"] if warm else [])]
+
+
+def limit_mcap(run_dir: Path, limit_mb: float) -> dict[str, Any]:
+    """Delete a run's MCAP beyond ``limit_mb`` (an EMP run logs every uploaded point
+    cloud: ~300 MB at 5 vehicles); the record says so."""
+    mcap = run_dir / "run.mcap"
+    try:
+        size_mb = mcap.stat().st_size / 1e6
+    except OSError:
+        return {}
+    if size_mb <= limit_mb:
+        return {}
+    mcap.unlink()
+    return {"mcap": None, "mcap_deleted_mb": round(size_mb, 1)}
 
 
 def _signal_group(pid: int, sig: int) -> None:
@@ -736,6 +745,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--vehicle-budget", type=int, default=20,
                     help="with --jobs > 1: connected vehicles of all running runs together (default 20)")
     ap.add_argument("--retry-failed", action="store_true", help="run again the keys whose last record failed")
+    ap.add_argument("--runs-dir", type=Path, help="where the runs write their outputs (default <out>/runs; with "
+                    "--cluster a directory every worker can reach at the same path)")
+    ap.add_argument("--cluster", metavar="tcp://HOST:8786", help="submit each run to this Dask scheduler (an "
+                    "address, or a scheduler file) instead of running it here (pip install 'autocast-py[cluster]'; "
+                    "docs/experiments.md); the workers' resources replace --jobs and --vehicle-budget")
     ap.add_argument("--dry-run", action="store_true", help="print the plan and the estimated wall time; run nothing")
     ap.add_argument("--log-level", default="INFO")
     return ap.parse_args(argv)
@@ -799,6 +813,9 @@ def main(argv: list[str] | None = None) -> int:
     todo = [k for k in keys if k.name not in records
             or (args.retry_failed and records[k.name]["status"] == "failed")]
     text = plan_text(spec, keys, todo, records, out, args.jobs, args.vehicle_budget)
+    if args.cluster:
+        text += (f"\n  on the cluster at {args.cluster}: as many runs at once as the workers' vehicles resources "
+                 "hold; the estimate above is for this machine")
     if args.dry_run:
         print(text)
         return EXIT_OK
@@ -815,11 +832,12 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         print(f"error: out: another sweep is running in {out}", file=sys.stderr)
         return EXIT_BAD_INPUT
     with lock:
-        sweep = Sweep(spec, out, args.jobs, args.vehicle_budget)
-        sweep.runs_dir.mkdir(exist_ok=True)
+        sweep = Sweep(spec, out, args.jobs, args.vehicle_budget, (args.runs_dir or out / "runs").resolve())
+        sweep.runs_dir.mkdir(parents=True, exist_ok=True)
         sweep.logs_dir.mkdir(exist_ok=True)
         plan = {"spec": asdict(spec), "runs": [{"run_key": k.name, **asdict(k)} for k in keys],
                 "jobs": args.jobs, "vehicle_budget": args.vehicle_budget, "to_run": len(todo),
+                "runs_dir": str(sweep.runs_dir), "cluster": args.cluster,
                 "estimated_wall_s": round(estimate_wall_s(todo, args.jobs, scale)), "git_revision": git_revision(),
                 "written_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:]}
         (out / PLAN).write_text(json.dumps(plan, indent=1) + "\n")
@@ -827,6 +845,10 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         if not todo:
             log.info("nothing to run: every run of the plan is recorded in %s", out / RESULTS)
             return _exit_code(spec, keys, out)
+        if args.cluster:  # the same runs and records, each run a task on a Dask worker
+            from deploy.cluster import run_on_cluster
+
+            return run_on_cluster(sweep, keys, todo, args.cluster)
         t0 = time.monotonic()
         try:
             warm_up(todo[0])
@@ -843,14 +865,19 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
                 failed, interrupted = sweep.execute(todo, progress)
         finally:
             progress.close()
-        counts = Counter((r["outcome"] or "failed") for r in latest(read_results(out / RESULTS)).values())
-        log.info("%s after %s: %s; results %s; report: autocast report %s",
-                 "interrupted" if interrupted else "done", _duration(time.monotonic() - t0),
-                 ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "no runs", out / RESULTS, out)
-        if interrupted:
-            log.info("the same command resumes the sweep")
-            return EXIT_INTERRUPTED
-        return _exit_code(spec, keys, out)
+        return finish_sweep(spec, keys, out, t0, interrupted)
+
+
+def finish_sweep(spec: SweepSpec, keys: list[RunKey], out: Path, t0: float, interrupted: bool) -> int:
+    """Log the outcome counts and where the results are; the sweep's exit code."""
+    counts = Counter((r["outcome"] or "failed") for r in latest(read_results(out / RESULTS)).values())
+    log.info("%s after %s: %s; results %s; report: autocast report %s",
+             "interrupted" if interrupted else "done", _duration(time.monotonic() - t0),
+             ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "no runs", out / RESULTS, out)
+    if interrupted:
+        log.info("the same command resumes the sweep")
+        return EXIT_INTERRUPTED
+    return _exit_code(spec, keys, out)
 
 
 def _exit_code(spec: SweepSpec, keys: list[RunKey], out: Path) -> int:

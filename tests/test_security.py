@@ -7,6 +7,7 @@ Cross-process behaviour is in test_hostile_peer.py and test_multihost.py."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -164,6 +165,23 @@ def test_the_agent_takes_only_its_row_and_one_verified_message_per_sender(author
                          check, bundle)
     assert got == [p1, p2]
     assert guard.rejections.summary()["by_stream"][DATA_STREAM] == {"bad_signature": 1}
+
+
+def test_a_vehicle_that_signs_two_control_messages_in_an_interval_is_heard_once(authority, creds):
+    """Vehicle 1 (compromised, its own key) signs a message whose digests do not fit its
+    object map, so it vouches for no payload, then a second one: the first is heard, the
+    second is a replay, as for any second message of a sender (the schedule gets one
+    message per vehicle, or the agreement sees vehicle 1 twice)."""
+    guard = Guard(creds[0], DropCounter())
+    p1 = payload(1, 10, 4)
+    unfit = replace(with_digests(control(1, 4, [10]), {10: p1}), digests=np.zeros((0, 16), np.uint8))
+    fit = with_digests(control(1, 4, [10]), {10: p1})
+    bundle = CtrlBundle(4, 0.4, np.array([1, 1], np.int64), np.array([0], np.int64), np.array([[True, True]]),
+                        [Signer(creds[1]).seal(unfit), Signer(creds[1]).seal(fit)])
+    heard, check = guard.heard(bundle, 4)
+    assert [encode(m) for m in heard] == [encode(unfit)]
+    assert guard.rejections.summary()["by_stream"] == {CTRL_STREAM: {"replayed": 1}}
+    assert guard.payloads([Reception(1, 10, 0.01, p1)], check, bundle) == []  # vouched by nothing it signed first
 
 
 # ---------------------------------------------------------------------------- the medium reads, never checks

@@ -4,8 +4,10 @@ After IEEE 1609.2, reduced to what a run needs. The run's authority (the launche
 holds an Ed25519 key pair and gives each connected vehicle a key pair and a
 ``Certificate`` (run id, vehicle id, validity in sim time, public key, the authority's
 signature). A vehicle sends each of its messages as a ``Signed`` envelope: the encoded
-message, its certificate and its signature over the two. A receiver checks, in this
-order, and drops and counts by reason what fails (``Rejections``):
+message, its certificate and its signature over a context string and the encoded
+message, which holds the sender's ``vid``, ``tick`` and ``t_sim_s`` (Ed25519 binds the
+signer's public key itself; docs/security.md). A receiver checks, in this order, and
+drops and counts by reason what fails (``Rejections``):
 
 - ``unsigned``: a plain message where a signed one is required;
 - ``bad_certificate``: the certificate is not the run's authority's (or of another run,

@@ -221,3 +221,28 @@ def test_the_acl_lets_each_process_put_only_on_its_own_keys(tmp_path):
     assert json.loads(paths["router-a"].read_text())["access_control"] == acl
     assert all(p.stat().st_mode & 0o777 == 0o600 for p in paths.values())
     assert table.agent_args(cfg, 1)[table.agent_args(cfg, 1).index("--zenoh-config") + 1] == str(paths["agent1"])
+
+
+def test_the_world_takes_each_report_once_and_a_late_one_is_no_replay(authority):
+    """The ego's reports, verified, reach the world's bookkeeping in order: one of a tick
+    already accepted (or older) is a replay; one the world never had, of a tick it has
+    moved past (a slow ego), is stale but honest, not counted as an attack."""
+    from protocol.messages import AgentReport
+    from world_server.scenarios import ScenarioParams
+    from world_server.server import WorldServer
+    from world_server.sim import Simulation
+
+    sim = Simulation(ScenarioParams(scenario="left_turn", vehicles=3, seed=0, delta_s=0.0))
+    server = WorldServer(sim, None, RUN, ego_reports=True, verifier=verifier(authority))
+    key = keys.report(RUN, 0)
+
+    def report(tick: int) -> AgentReport:
+        return AgentReport(tick, tick * 0.1, 0, np.zeros((0, 2), np.float32), 0, False)
+
+    server._on_report(key, report(0))
+    for _ in range(3):  # the world goes on to tick 3 without the ego's next reports
+        sim.step({})
+    server._on_report(key, report(2))  # late: never had it
+    server._on_report(key, report(2))  # had it
+    server._on_report(key, report(1))  # older than one it had
+    assert reasons(server.verifier) == {"replayed": 2}

@@ -63,6 +63,7 @@ class WorldServer:
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
         self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
+        self._report_tick = -1  # the newest report accepted: with a verifier, an older one is a replay
         # the ego agent reports its fused view: lock-step waits for it. Told so up front
         # (--ego-reports), from the first tick; otherwise once a first report has come,
         # and whether that beat the first command was a race that changed the judged
@@ -153,9 +154,10 @@ class WorldServer:
 
     def _on_report(self, key: str, report: AgentReport) -> None:
         with self._cv:
-            if self.verifier is not None and (report.tick in self._reports or report.tick < self.sim.tick):
+            if self.verifier is not None and report.tick <= self._report_tick:
                 self.verifier.rejections.add(key, "replayed", f"report of tick {report.tick}")
                 return
+            self._report_tick = max(self._report_tick, report.tick)
             self._reports[report.tick] = report
             self._ego_reports = True
             self._cv.notify_all()

@@ -653,6 +653,13 @@ def main(argv: list[str] | None = None) -> int:
         print(plan(hf, placed, opts.run))
         return 0
     if args.compose:
+        if args.sign:  # asked for, and it would silently not be: the images hold no credentials
+            print("error: --sign needs each run's credentials, which --compose does not write (docs/multihost.md)",
+                  file=sys.stderr)
+            return run.EXIT_BAD_INPUT
+        if args.lock_down:
+            print("note: the compose file is not locked down (--compose writes no credentials; docs/multihost.md)",
+                  file=sys.stderr)
         how = shlex.join(["autocast", "deploy", *(sys.argv[2:] if argv is None else argv)])
         Path(args.compose).write_text(compose_text(opts.run, hf, how))
         print(f"wrote {args.compose}")

@@ -138,6 +138,16 @@ def test_dry_run_prints_every_hosts_router_and_command(tmp_path, capsys):
 # ---------------------------------------------------------------------------- docker compose (not run: no engine here)
 
 
+def test_compose_refuses_to_sign_and_says_it_is_not_locked_down(tmp_path, capsys):
+    """The images hold no credentials: a signed run asked for is refused, not run unsigned."""
+    out = tmp_path / "compose.yml"
+    flags = ["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--compose", str(out)]
+    assert hosts.main([*flags, "--sign"]) == 2 and not out.exists()
+    assert "--sign" in capsys.readouterr().err
+    assert hosts.main(flags) == 0 and out.exists()
+    assert "not locked down" in capsys.readouterr().err
+
+
 def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_path):
     yaml = pytest.importorskip("yaml")
     checked_in = yaml.safe_load(COMPOSE.read_text())

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
@@ -293,9 +294,14 @@ class PayloadCheck:
     _digests: dict[int, dict[int, bytes]] = field(default_factory=dict)  # sender -> object id -> digest
 
     def vouch(self, msg: ControlMsg) -> None:
-        if msg.vid in self._digests or len(msg.digests) != len(msg.objects.object_id):
+        """A message whose digests are not one ``DIGEST_BYTES`` row of bytes per object of
+        its map vouches for nothing (the codec checks dtypes, not shapes: a vehicle may
+        sign any shape)."""
+        ids, digests = msg.objects.object_id, msg.digests
+        if msg.vid in self._digests or ids.ndim != 1 or digests.dtype != np.uint8 or \
+                digests.shape != (len(ids), DIGEST_BYTES):
             return
-        self._digests[msg.vid] = dict(zip(msg.objects.object_id.tolist(), (bytes(d) for d in msg.digests)))
+        self._digests[msg.vid] = dict(zip(ids.tolist(), (d.tobytes() for d in digests)))
 
     def vouched(self, sender: int) -> bool:
         return sender in self._digests
@@ -324,8 +330,6 @@ class PayloadCheck:
 
 def with_digests(msg: ControlMsg, payloads: dict[int, bytes]) -> ControlMsg:
     """``msg`` vouching for ``payloads`` (object id -> the payload it will send if scheduled)."""
-    import numpy as np
-
     rows = [payload_digest(payloads[oid]) for oid in msg.objects.object_id.tolist()]
     digests = np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(-1, DIGEST_BYTES) if rows else \
         np.zeros((0, DIGEST_BYTES), dtype=np.uint8)

@@ -246,3 +246,23 @@ def test_the_world_takes_each_report_once_and_a_late_one_is_no_replay(authority)
     server._on_report(key, report(2))  # had it
     server._on_report(key, report(1))  # older than one it had
     assert reasons(server.verifier) == {"replayed": 2}
+
+
+def test_a_signed_control_message_of_any_shape_vouches_for_nothing_and_raises_nothing(authority, creds):
+    """The codec checks each array's dtype and bytes, not its shape, and a compromised
+    vehicle signs what it likes: digests of another dtype or shape, or an object map
+    whose ids are a matrix, leave its payloads unvouched (``unsigned``), and the agent's
+    tick goes on."""
+    p1 = payload(1, 10, 4)
+    good = with_digests(control(1, 4, [10]), {10: p1})
+    odd = [replace(good, digests=good.digests.astype(np.float64)),
+           replace(good, digests=good.digests.reshape(-1)),
+           replace(good, objects=replace(good.objects, object_id=good.objects.object_id.reshape(1, 1)))]
+    for msg in odd:
+        guard = Guard(creds[0], DropCounter())
+        raw = Signer(creds[1]).seal(msg)
+        bundle = CtrlBundle(4, 0.4, np.array([1], np.int64), np.array([0], np.int64), np.array([[True]]), [raw])
+        heard, check = guard.heard(decode(encode(bundle)), 4)
+        assert len(heard) == 1
+        assert guard.payloads([Reception(1, 10, 0.01, p1)], check, bundle) == []
+        assert guard.rejections.summary()["by_reason"] == {"unsigned": 1}

@@ -74,6 +74,7 @@ def test_the_peer_covers_every_data_key():
     assert {fn for fn in key_functions() if fn not in NOT_DATA} == set(KEY_TYPES)
 
 
+@pytest.mark.heavy
 def test_the_run_ends_judged_as_without_the_hostile_peer_and_nobody_dies(runs):
     (calm, calm_codes), (hostile, codes) = runs
     assert calm.result is not None and hostile.result is not None, (calm.failure, hostile.failure)

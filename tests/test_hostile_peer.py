@@ -52,6 +52,10 @@ def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, in
     return result, {name: proc.returncode for name, (_, proc) in launcher.procs.procs.items()}
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_hostile_peer")
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """The same run without and with the hostile peer, side by side (lock-step: the

@@ -80,6 +80,10 @@ def got(bundle) -> list[tuple[int, int, float]]:
 # ------------------------------------------------------------------ an ideal channel
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_channel_process")
+
+
 @pytest.fixture(scope="module")
 def ideal():
     """One proxy (no link loss, unlimited range) for several tests; each takes fresh ticks."""

@@ -62,6 +62,10 @@ def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, in
     return result, {name: proc.returncode for name, (_, proc) in launcher.procs.procs.items()}
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_hostile_peer")
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """The same run without and with the hostile peer, side by side (lock-step: the
@@ -84,6 +88,7 @@ def test_the_peer_covers_every_data_key():
     assert {fn for fn in key_functions() if fn not in NOT_DATA} == set(KEY_TYPES)
 
 
+@pytest.mark.heavy
 def test_the_run_ends_judged_as_without_the_hostile_peer_and_nobody_dies(runs):
     (calm, calm_codes), (hostile, codes) = runs
     assert calm.result is not None and hostile.result is not None, (calm.failure, hostile.failure)

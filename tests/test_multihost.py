@@ -231,6 +231,7 @@ def _processes_in(ns: str) -> set[tuple[str, str, str]]:
     return out
 
 
+@pytest.mark.heavy
 def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_path):
     reason = netns.unavailable()
     if reason:
@@ -313,6 +314,7 @@ def _pid_in(ns: str, module: str) -> int:
     raise AssertionError(f"no {module} process in {ns}")
 
 
+@pytest.mark.heavy
 def test_a_hosts_router_killed_mid_run_fails_the_run_and_leaves_nothing(tmp_path):
     """h1's router (the proxy's host) is SIGKILLed while the run is under way: agent 2
     hangs at tick 10 and may take 600 s to be declared dead, so the run cannot end on its

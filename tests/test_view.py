@@ -31,6 +31,10 @@ RUN = "view5"
 VEHICLES = 5
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_view")
+
+
 @pytest.fixture(scope="module")
 def run_mcap(tmp_path_factory):
     """One short real run (5 vehicles, autocast, loopback) shared by every test here."""

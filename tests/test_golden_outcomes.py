@@ -17,6 +17,7 @@ from golden_outcomes import QUICK, differences, entry_name, load, run_entry
 from vehicle_agent.replay import Log, replay
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("flags", [(), ("--sign", "--lock-down")], ids=["plain", "signed-locked-down"])
 def test_a_short_autocast_run_ends_as_recorded_and_every_agent_replays_identically(tmp_path, flags):
     scenario, scheme, duration_s = QUICK[0]

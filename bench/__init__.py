@@ -11,9 +11,10 @@ HEADLINE_KEYS: dict[str, tuple[str, ...]] = {
     "perception": ("dataplane_ms",),
     "scheduler": ("greedy_vs_optimal", "agnostic_vs_greedy", "greedy40_ms", "fptas_over_greedy_time"),
     "channel": ("disagreement_loss10_pct", "proxy40_ms"),
-    "pipeline": ("agent_ms", "plan_ms", "rtf5", "rtf10", "rtf20", "rtf40", "startup40_s", "proc10_ms", "proc40_ms"),
+    "pipeline": ("agent_ms", "plan_ms", "rtf5", "rtf10", "rtf20", "rtf40", "startup40_s", "proc10_ms", "proc40_ms",
+                 "sign40_pct"),
     "fuzz": ("inputs", "other_exceptions", "over_alloc_bound", "peak_kib", "peak_per_byte"),
 }
 # --quick keeps every key but the densities it skips: pipeline runs 5 and 10 vehicles only
 QUICK_KEYS: dict[str, tuple[str, ...]] = dict(HEADLINE_KEYS, pipeline=("agent_ms", "plan_ms", "rtf5", "rtf10",
-                                                                       "startup10_s", "proc10_ms"))
+                                                                       "startup10_s", "proc10_ms", "sign5_pct"))

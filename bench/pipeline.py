@@ -8,6 +8,14 @@ median over agents), the agent's whole tick, the ego's (the vehicle that plans a
 path every tick) and the RTF. ``proc`` is the agent's whole-process CPU per tick (user
 + system, every thread: also the Zenoh threads that receive and decode its scan and
 bundles), measured with getrusage from the end of its first tick to the end of its last.
+
+Signing (docs/security.md): the largest density (``--sign-at``; 5 with ``--quick``)
+runs once more with ``--sign``; the table compares the two runs' agents, and
+``sign<N>_pct`` is what signing and verifying cost an agent, in per cent of its
+whole-process CPU per tick without: how much more its ``security`` (sealing, checking
+the heard control messages and the decoded payloads), ``encoding`` (a signed control
+message vouches for every object's payload, so every one is encoded) and ``link``
+stages (decoding the heard control messages moves from it to ``security``) take.
 """
 
 from __future__ import annotations
@@ -23,14 +31,16 @@ import numpy as np
 
 from bench import fixed_cost
 
-STAGES = ("perception", "spatial_reasoning", "schedule", "encoding", "link", "fusion", "planning", "control")
+STAGES = ("perception", "spatial_reasoning", "schedule", "encoding", "link", "security", "fusion", "planning",
+          "control")
 _TIMINGS = re.compile(r"^agent_timings (\{.*\})$", re.M)
 
 
-def run_once(vehicles: int, duration_s: float, out: Path, scheme: str) -> tuple[dict, list[dict], dict]:
+def run_once(vehicles: int, duration_s: float, out: Path, scheme: str,
+             sign: bool = False) -> tuple[dict, list[dict], dict]:
     cmd = [sys.executable, "-m", "deploy.cli", "run", "--scenario", "left_turn", "--vehicles", str(vehicles),
            "--scheme", scheme, "--duration", str(duration_s), "--delta", "3", "--json", "--out", str(out),
-           "--scans", "none", "--log-level", "WARNING"]
+           "--scans", "none", "--log-level", "WARNING", "--sign" if sign else "--no-sign"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
     lines = proc.stdout.strip().splitlines()
     if not lines or not lines[-1].startswith("{"):
@@ -59,9 +69,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=None, help="sim seconds per run (default 8, quick 3)")
     ap.add_argument("--scheme", default="autocast")
     ap.add_argument("--out", default="runs/bench_pipeline")
+    ap.add_argument("--sign-at", type=int, default=None,
+                    help="the density run again with signing (default: the largest; 5 with --quick)")
     args = ap.parse_args(argv)
     densities = [int(v) for v in (args.vehicles or ("5,10" if args.quick else "5,10,20,40")).split(",")]
     duration = args.duration or (3.0 if args.quick else 8.0)
+    sign_at = args.sign_at or (min(densities) if args.quick else max(densities))
+    if sign_at not in densities:
+        ap.error(f"--sign-at {sign_at} is not one of the densities {densities}")
 
     rows, rtf, agent_ms, plan_ms, proc = [], {}, [], [], {}
     for n in densities:
@@ -77,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
           "agent's whole tick (median and mean), the ego's, the channel wait (wall) and the run")
     cols = [s[:10] for s in STAGES] + ["cpu", "cpu mean", "ego cpu", "ego plan", "chan wait", "proc", "dead", "RTF"]
     print(f"{'vehicles':>8} {'agents':>6} " + " ".join(f"{c:>10}" for c in cols))
+    signed = run_once(sign_at, duration, Path(args.out), args.scheme, sign=True)
+    rows.append((f"{sign_at}+sign", signed[1], signed[2], signed[0]))
     for n, per_agent, ego, outcome in rows:
         vals = [_median_of(per_agent, f"{s}_cpu_mean") for s in STAGES]
         vals += [_median_of(per_agent, "cpu"), _median_of(per_agent, "cpu_mean"), ego.get("cpu", 0.0),
@@ -92,11 +109,20 @@ def main(argv: list[str] | None = None) -> int:
           "the outcome, in all; cold: autocast run typed in a shell, warm: forked from a warm parent, as a sweep "
           "runs it (bench/fixed_cost.py)")
     print("\n".join(fixed_cost.table(costs)))
+    plain_row = next(r for r in rows if r[0] == sign_at)[1]
+    touched = ("security", "encoding", "link")  # decoding the heard control messages moves from link to security
+    extra = max(0.0, sum(_median_of(signed[1], f"{s}_cpu_mean") - _median_of(plain_row, f"{s}_cpu_mean")
+                         for s in touched))
+    sign_pct = 100.0 * extra / max(proc[sign_at], 1e-9)
+    print(f"signing at {sign_at} vehicles: security + encoding + link stages {extra:.2f} ms more per agent and "
+          f"tick = {sign_pct:.1f}% of the agent's whole-process CPU without ({proc[sign_at]:.2f} ms); whole "
+          f"process {proc[sign_at]:.2f} -> {_median_of(signed[1], 'proc_cpu'):.2f} ms (the two runs ran one after "
+          "the other: under load their difference is noisier than the stages')")
     warm = {c.vehicles: c.fixed_s for c in costs if c.mode == "warm"}
     rtf_keys = " ".join(f"rtf{n}={rtf[n]:.3f}" for n in densities)
     proc_keys = " ".join(f"proc{n}_ms={proc[n]:.2f}" for n in densities if n in (10, 40))
     print(f"pipeline: agent_ms={np.median(agent_ms):.2f} plan_ms={np.median(plan_ms):.2f} {rtf_keys} "
-          f"startup{densities[-1]}_s={warm[densities[-1]]:.2f} {proc_keys}")
+          f"startup{densities[-1]}_s={warm[densities[-1]]:.2f} {proc_keys} sign{sign_at}_pct={sign_pct:.2f}")
     return 0
 
 

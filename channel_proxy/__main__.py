@@ -50,6 +50,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     em = ap.add_argument_group("EMP relay")
     em.add_argument("--relay-xy", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"))
     em.add_argument("--emp-bytes-per-point", type=float, default=6.0, help="on-air coding of a segment's points")
+    ap.add_argument("--relay-extra-frames", action="store_true",
+                    help="a signed run: relay every frame of a vehicle's slot, not only its own (receivers verify; "
+                         "docs/security.md)")
     ap.add_argument("--stay", action="store_true", help="keep running after the world's outcome")
     ap.add_argument("--log-level", default="WARNING")
     add_zenoh_args(ap)
@@ -85,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             phase_timeout_s=args.phase_timeout_s, dead_after=args.dead_after,
             ctrl_deadline_s=args.ctrl_deadline_s, data_deadline_s=args.data_deadline_s,
             relay_xy=tuple(args.relay_xy), emp_bytes_per_point=args.emp_bytes_per_point,
-            exit_on_outcome=not args.stay,
+            exit_on_outcome=not args.stay, relay_extra_frames=args.relay_extra_frames,
         )
     except (KeyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -11,6 +11,21 @@ One interval (tick k), lock-step:
    the control phase; play the data channel; publish one ``DataBundle`` (every
    decoded payload once, and who decoded which), then ``ChannelStats``.
 
+Who sent what: a frame on vehicle v's key (``.../tx/<v>``) is in v's slot. The first
+one that names v (its ``vid``) is v's message for the phase: the phase waits for it,
+and the medium plays it (its position, its size, its airtime). In an unsigned run any
+other frame is dropped (one naming another vehicle is counted malformed, a second one
+naming v ``duplicate``). In a signed run (``relay_extra_frames``) the proxy judges
+nobody's identity: any other frame in v's slot is relayed unplayed, after v's own, to
+the receivers that heard v's (control) or with the fate of v's own transmission of the
+same object, else of its first decoded one (data); the first eight per slot, the rest
+counted ``flooded``. The proxy verifies nothing: a signed frame (``protocol.security``)
+is read through its envelope, and the receivers check who really sent what. On an open
+network a frame naming v that comes before v's own is played as v's, and v's own is
+then a second frame: that can make the medium mis-place v or close a phase without it,
+never make a receiver accept a forgery; ``--lock-down`` (docs/security.md) lets only
+v's session put on v's keys.
+
 Expected vehicles: the tick's live set minus the dead. A vehicle that misses a phase is
 absent for that tick; after ``dead_after`` absences in a row it is dead and no longer
 waited for, until it sends again; a liveliness token that disappears makes it dead at
@@ -39,13 +54,14 @@ from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.faults import Injector
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
-                               EmpUpload, Outcome, Reception, Tick)
+                               EmpUpload, Outcome, Reception, Signed, Tick)
 from protocol.session import DropCounter, big_publisher, reliable_publisher
 
 log = logging.getLogger(__name__)
 
 MODES = ("v2v", "emp")
 FUTURE_TICKS = 2  # messages may run ahead of the tick by this much (they race the world's Tick)
+MAX_EXTRA_FRAMES = 8  # frames relayed unplayed per slot and phase
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +80,7 @@ class ProxyConfig:
     relay_xy: tuple[float, float] = (0.0, 0.0)
     emp_bytes_per_point: float = 6.0
     exit_on_outcome: bool = True
+    relay_extra_frames: bool = False  # a signed run: relay a slot's other frames too (module docstring)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -83,7 +100,9 @@ class Counters:
     late: int = 0  # messages for a phase already closed
     duplicate: int = 0
     not_live: int = 0  # from a vehicle the tick does not list
-    wrong_key: int = 0  # vid in the message differs from the key's
+    foreign: int = 0  # frames naming another vehicle than their key's (dropped; relayed unplayed in a signed run)
+    extra_frames: int = 0  # frames relayed unplayed (foreign, or a second one naming the key's vehicle)
+    flooded: int = 0  # frames beyond MAX_EXTRA_FRAMES in a slot, dropped
     invalid_tx: int = 0  # transmissions with a negative or non-finite start
     skipped_ticks: int = 0
     dead: dict[int, str] = field(default_factory=dict)
@@ -103,11 +122,13 @@ class ChannelProxy:
         self._done_tick = -1  # newest tick fully played
         self._closed = {"ctrl": -1, "data": -1, "emp": -1}  # newest tick whose phase closed
         self._inbox: dict[str, dict[int, dict[int, Any]]] = {p: defaultdict(dict) for p in self._closed}
+        self._extra: dict[str, dict[int, dict[int, list]]] = {p: defaultdict(dict) for p in self._closed}
         self._absent: dict[int, int] = {}  # absences in a row
         self._dead: set[int] = set()
         self._token_gone: set[int] = set()
         self._last_xy: dict[int, tuple[float, float]] = {}
         self._pubs: dict[str, zenoh.Publisher] = {}
+        self._extras: dict[int, list] = {}  # the closed phase's frames beyond each slot's own
         self._entities: list = []
         self._cpu_mark = time.process_time()
 
@@ -177,14 +198,15 @@ class ChannelProxy:
             key = str(sample.key_expr)
             raw = sample.payload.to_bytes()
             try:
-                msg = decode(raw, expected)
+                msg = read_frame(raw, expected) if self.cfg.relay_extra_frames else decode(raw, expected)
                 vid = keys.vid_of(key)
             except (MalformedMessage, ValueError) as err:
                 self.drops.add(key, err)
                 return
+            relay = self.cfg.relay_extra_frames
             with self._cv:
-                if msg.vid != vid:
-                    self.counters.wrong_key += 1
+                if msg.vid != vid and not relay:
+                    self.counters.foreign += 1
                     self.drops.add(key, ValueError(f"vid {msg.vid} on vehicle {vid}'s key"))
                     return
                 newest = self._tick.tick if self._tick is not None else -1
@@ -195,11 +217,25 @@ class ChannelProxy:
                     self.drops.add(key, ValueError(f"tick {msg.tick} is far ahead of the world's {newest}"))
                     return
                 box = self._inbox[phase][msg.tick]
-                if vid in box:
+                if not relay:  # one frame per slot: the vehicle's own
+                    if vid in box:
+                        self.counters.duplicate += 1
+                        return
+                    box[vid] = (msg, raw)
+                    self._cv.notify_all()
+                    return
+                extra = self._extra[phase][msg.tick].setdefault(vid, [])
+                if (vid in box and box[vid][1] == raw) or any(r == raw for _, r in extra):
                     self.counters.duplicate += 1
                     return
-                box[vid] = (msg, raw)
-                self._cv.notify_all()
+                if msg.vid == vid and vid not in box:
+                    box[vid] = (msg, raw)  # the vehicle's own: played, and waited for
+                    self._cv.notify_all()
+                elif len(extra) >= MAX_EXTRA_FRAMES:
+                    self.counters.flooded += 1
+                else:
+                    self.counters.foreign += msg.vid != vid
+                    extra.append((msg, raw))
 
         return handler
 
@@ -249,7 +285,9 @@ class ChannelProxy:
 
     def _collect(self, phase: str, k: int, expected: set[int], deadline: float) -> dict[int, tuple[Any, bytes]]:
         """Wait until every expected vehicle has filed its message for tick k, the
-        deadline passes, the world moves past k, or we stop; then close the phase."""
+        deadline passes, the world moves past k, or we stop; then close the phase.
+        Returns each vehicle's own message; the phase's other frames are left in
+        ``self._extras`` (vid -> [(msg, raw)])."""
         with self._cv:
             while not self._stop.is_set():
                 have = self._inbox[phase].get(k, {})
@@ -264,8 +302,12 @@ class ChannelProxy:
                 self._cv.wait(left)
             self._closed[phase] = max(self._closed[phase], k)
             got = self._inbox[phase].pop(k, {})
+            self._extras = {v: frames for v, frames in self._extra[phase].pop(k, {}).items() if frames}
+            self.counters.extra_frames += sum(map(len, self._extras.values()))
             for t in [t for t in self._inbox[phase] if t <= k]:
                 self.counters.late += len(self._inbox[phase].pop(t))
+            for t in [t for t in self._extra[phase] if t <= k]:
+                self.counters.late += sum(map(len, self._extra[phase].pop(t).values()))
             return got
 
     def _deadline(self, t_open: float, realtime_after_s: float) -> float:
@@ -309,6 +351,8 @@ class ChannelProxy:
             "late": self.counters.late,
             "duplicate": self.counters.duplicate,
             "not_live": self.counters.not_live,
+            "extra_frames": self.counters.extra_frames,
+            "flooded": self.counters.flooded,
             "invalid_tx": self.counters.invalid_tx,
             "dead": sorted(self.counters.dead),
         })
@@ -336,9 +380,9 @@ class ChannelProxy:
         sizes = np.array([_ctrl_onair(ctrl[v][0]) for v in senders.tolist()], dtype=np.int64)
         out = medium.play_control(live, s_idx, sizes, loss.link_probabilities(xy, profile.prr, self.cfg.ctrl_loss),
                                   reach, capacity_bytes=profile.ctrl_capacity_bytes, seed=self.cfg.seed, tick=k)
-        self._pub(keys.net_ctrl_rx(run)).put(encode(CtrlBundle(k, tick.t_sim_s, senders, live,
-                                                               np.ascontiguousarray(out.heard.T),
-                                                               [ctrl[v][1] for v in senders.tolist()])))
+        columns, frames = self._with_extras(senders, [ctrl[v][1] for v in senders.tolist()], self._extras)
+        self._pub(keys.net_ctrl_rx(run)).put(encode(CtrlBundle(k, tick.t_sim_s, senders[columns], live,
+                                                               np.ascontiguousarray(out.heard.T[:, columns]), frames)))
         ctrl_stats = {
             "senders": len(senders),
             "offered_bytes": int(sizes.sum()),
@@ -347,6 +391,7 @@ class ChannelProxy:
             "lost_channel_pairs": int(out.lost_channel.sum()),
             "in_range_pairs": int(out.in_range.sum()),
             "absent": absent_ctrl,
+            "extra_frames": len(frames) - len(senders),
         }
         ctrl_work_s = time.perf_counter() - t_work
 
@@ -358,6 +403,19 @@ class ChannelProxy:
         stats["data"]["absent"] = absent_data
         self._publish_stats(tick, stats, t_work)
         self._done_tick = k
+
+    def _with_extras(self, senders: np.ndarray, own: list[bytes], extras: dict[int, list]) -> tuple[np.ndarray, list[bytes]]:
+        """The bundle's columns: each sender's own message, then the other frames of its
+        slot (a column index into ``senders`` per frame, and the frames); a slot
+        without a message of its own relays nothing (nobody heard that vehicle)."""
+        columns, frames = [], []
+        for s, vid in enumerate(senders.tolist()):
+            columns.append(s)
+            frames.append(own[s])
+            for _, raw in extras.get(vid, []):
+                columns.append(s)
+                frames.append(raw)
+        return np.array(columns, dtype=np.int64), frames
 
     def _only_live(self, got: dict[int, tuple[Any, bytes]], live: np.ndarray) -> dict[int, tuple[Any, bytes]]:
         live_set = set(live.tolist())
@@ -388,13 +446,15 @@ class ChannelProxy:
         order = order[out.delivered[order].any(axis=1)]  # what somebody decoded
         receptions = [Reception(int(live[sender[t]]), int(item[t]), float(rx_s[t]), txs[t][1].payload)
                       for t in order.tolist()]
-        self._pub(keys.net_data_rx(run)).put(encode(DataBundle(k, tick.t_sim_s, live,
-                                                               np.ascontiguousarray(out.delivered[order].T),
-                                                               receptions)))
+        twins, extra = self._extra_receptions(txs, self._extras, out.delivered.any(axis=1), rx_s)
+        decoded = out.delivered[np.concatenate([order, np.array(twins, dtype=np.int64)])]
+        self._pub(keys.net_data_rx(run)).put(encode(DataBundle(k, tick.t_sim_s, live, np.ascontiguousarray(decoded.T),
+                                                               receptions + extra)))
         size_col = size[:, None]
         sent = ~out.overflow
         return {
             "transmissions": len(txs),
+            "extra_receptions": len(extra),
             "offered_bytes": int(size.sum()),
             "overflow_tx": int(out.overflow.sum()),
             "overflow_bytes": int(size[out.overflow].sum()),
@@ -409,6 +469,29 @@ class ChannelProxy:
                          round(float(rx_s[t]), 6), int(out.delivered[t].sum()), int(out.in_range[t].sum())]
                         for t in np.flatnonzero(sent).tolist()],
         }
+
+    def _extra_receptions(self, txs: list[tuple[int, Any]], extras: dict[int, list], decoded: np.ndarray,
+                          rx_s: np.ndarray) -> tuple[list[int], list[Reception]]:
+        """The transmissions of the frames beyond each sender's own, each relayed with
+        the fate of a decoded transmission of the sender's own (its twin: who decoded
+        it, when): the one of the same object, else the sender's first one; nothing is
+        relayed from a sender none of whose own transmissions was decoded. Returns the
+        twin of each (an index into ``txs``) and the receptions."""
+        twin_of: dict[tuple[int, int], int] = {}
+        first: dict[int, int] = {}
+        for t, (vid, tx) in enumerate(txs):
+            if decoded[t]:
+                twin_of.setdefault((vid, tx.object_id), t)
+                first.setdefault(vid, t)
+        twins, out = [], []
+        for vid in sorted(extras):
+            for msg, _ in extras[vid]:
+                for tx in msg.transmissions:
+                    t = twin_of.get((vid, tx.object_id), first.get(vid))
+                    if t is not None:
+                        twins.append(t)
+                        out.append(Reception(vid, tx.object_id, float(rx_s[t]), tx.payload))
+        return twins, out
 
     # ------------------------------------------------------------------ EMP
 
@@ -456,6 +539,18 @@ class ChannelProxy:
         }}
         self._publish_stats(tick, stats, t_work)
         self._done_tick = k
+
+
+def read_frame(raw: bytes, expected: type) -> Any:
+    """What the medium reads of a frame: a plain ``expected``, or the body of a ``Signed``
+    one, unverified (the medium needs the tick, the sender's position and the sizes;
+    receivers verify). Raises ``MalformedMessage`` for anything else."""
+    msg = decode(raw)
+    if isinstance(msg, Signed):
+        return decode(msg.body, expected)
+    if not isinstance(msg, expected):
+        raise MalformedMessage(f"expected {expected.__name__} or Signed, got {type(msg).__name__}")
+    return msg
 
 
 def _ctrl_onair(msg: ControlMsg) -> int:

@@ -38,6 +38,7 @@ from deploy.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, iter_log, 
 from protocol.codec import MalformedMessage
 from protocol.messages import (ControlMsg, DataBundle, EmpBundle, LidarConfig, MapMsg, Mission, Scan, Tick,
                                WorldTruth)
+from protocol.security import opened
 
 log = logging.getLogger("deploy.export")
 
@@ -174,7 +175,10 @@ class FoxgloveScene:
     def add(self, topic: str, msg: object) -> None:
         self.stats.read.messages += 1
         self.stats.read.per_type[type(msg).__name__] += 1
+        recorded, msg = msg, opened(msg)  # a signed message: what it says, unverified (docs/security.md)
         try:
+            if msg is None:
+                raise MalformedMessage("a signed envelope whose body does not decode")
             if isinstance(msg, MapMsg):
                 self.map(msg)
             elif isinstance(msg, Mission):
@@ -196,7 +200,7 @@ class FoxgloveScene:
         except (MalformedMessage, ValueError) as exc:  # a bad inner payload, a scan that fits no LiDAR
             self.stats.read.count_malformed(topic, exc)
         if self.json_mirror:
-            self.mirror(topic, msg)
+            self.mirror(topic, recorded)  # as the recorder's mirror has it: the envelope
 
     def mirror(self, key: str, msg: object) -> None:
         """The message as JSON on ``json/<key>``, as the recorder's mirror has it."""

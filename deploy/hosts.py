@@ -69,6 +69,7 @@ class Host:
     address: str  # how the other hosts (and this host's processes) reach its router
     prefix: tuple[str, ...] = LOCAL_PREFIX  # runs its last argument, a shell command line, on the host
     port: int = DEFAULT_PORT  # the router's TCP port
+    tls_port: int = 0  # locked down: where routers reach each other over mutual TLS; default port + 1
     listen: str = ""  # the address the router binds; default ``address`` (``0.0.0.0`` behind NAT)
     workdir: str = str(REPO)  # the repository's checkout on the host
     python: str = sys.executable  # a Python with the project installed, on the host
@@ -86,12 +87,21 @@ class Host:
         return _endpoint(self.listen or self.address, self.port)
 
     @property
+    def tls_endpoint(self) -> str:
+        """Where the other routers reach this one when the run is locked down."""
+        return _endpoint(self.address, self.tls_port or self.port + 1, "tls")
+
+    @property
+    def tls_listen_endpoint(self) -> str:
+        return _endpoint(self.listen or self.address, self.tls_port or self.port + 1, "tls")
+
+    @property
     def router(self) -> str:
         return f"router-{self.name}"
 
 
-def _endpoint(address: str, port: int) -> str:
-    return f"tcp/[{address}]:{port}" if ":" in address else f"tcp/{address}:{port}"
+def _endpoint(address: str, port: int, protocol: str = "tcp") -> str:
+    return f"{protocol}/[{address}]:{port}" if ":" in address else f"{protocol}/{address}:{port}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,10 +143,11 @@ def parse_hosts(data: dict[str, Any]) -> HostsFile:
     for name in names:
         if names.count(name) > 1:
             raise run.InputError(f"hosts: host name {name!r} is used twice")
-    endpoints = [h.endpoint for h in hosts]
+    endpoints = [h.endpoint for h in hosts] + [h.tls_endpoint.replace("tls/", "tcp/", 1) for h in hosts]
     for ep in endpoints:
         if endpoints.count(ep) > 1:
-            raise run.InputError(f"hosts: two hosts' routers at {ep} (give them different addresses or ports)")
+            raise run.InputError(f"hosts: two hosts' routers at {ep} (give them different addresses or ports; "
+                                 "a locked-down router also listens on its tls_port, default port + 1)")
     connect = launcher.get("connect", [])
     if isinstance(connect, str):
         connect = [connect]
@@ -174,6 +185,10 @@ def _host(i: int, entry: dict[str, Any]) -> Host:
     port = entry.get("port", DEFAULT_PORT)
     if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
         raise bad("port", "a TCP port (1..65535)")
+    tls_port = entry.get("tls_port", 0)
+    if not isinstance(tls_port, int) or isinstance(tls_port, bool) or not 0 <= tls_port <= 65535 or \
+            (tls_port == 0 and port == 65535) or tls_port == port:
+        raise bad("tls_port", "another TCP port (1..65535; default port + 1)")
     prefix = entry.get("prefix", "")
     if isinstance(prefix, str):
         prefix = shlex.split(prefix)
@@ -197,7 +212,7 @@ def _host(i: int, entry: dict[str, Any]) -> Host:
         agents = tuple(agents)
     elif not (agents == REST or (isinstance(agents, int) and not isinstance(agents, bool) and agents >= 0)):
         raise bad("agents", f"a count, a list of vehicle ids or {REST!r}")
-    return Host(name=name, address=entry["address"], prefix=tuple(prefix) or LOCAL_PREFIX, port=port,
+    return Host(name=name, address=entry["address"], prefix=tuple(prefix) or LOCAL_PREFIX, port=port, tls_port=tls_port,
                 listen=entry.get("listen", ""), workdir=entry.get("workdir", str(REPO)),
                 python=entry.get("python", sys.executable), env=tuple(sorted(env.items())), warm_up=warm_up,
                 run=tuple(roles), agents=agents)
@@ -257,12 +272,18 @@ def assign_agents(vids: Sequence[int], hosts: Sequence[Host]) -> dict[int, Host]
     return out
 
 
-def router_spec(host: Host, hf: HostsFile) -> ProcSpec:
-    """The host's router connects to the routers of the hosts listed before it: one link per pair."""
+def router_spec(host: Host, hf: HostsFile, config: Path | None = None) -> ProcSpec:
+    """The host's router connects to the routers of the hosts listed before it: one link
+    per pair. ``config``: its credentials and the run's ACL (``--lock-down``); the routers
+    then link over mutual TLS on their ``tls_port`` (deploy/credentials.py says why)."""
     before = hf.hosts[:[h.name for h in hf.hosts].index(host.name)]
     args = ["--name", host.name, "--listen", host.listen_endpoint]
+    if config is not None:
+        args += ["--listen", host.tls_listen_endpoint]
     for other in before:
-        args += ["--connect", other.endpoint]
+        args += ["--connect", other.tls_endpoint if config is not None else other.endpoint]
+    if config is not None:
+        args += ["--zenoh-config", str(config)]
     return ProcSpec(host.router, "deploy.router", tuple(args), critical=True)
 
 
@@ -278,6 +299,34 @@ def shell_line(host: Host, module: str, args: Sequence[str], action: str = "exec
 
 def on_host(host: Host, line: str) -> list[str]:
     return [*host.prefix, line]
+
+
+def put_files(host: Host, files: dict[Path, str]) -> None:
+    """Write ``files`` on the host (paths relative to its workdir), readable by the owner
+    only, through its prefix: the content goes over the prefix's stdin, never on a
+    command line. Raises ``RuntimeError`` if the host refuses."""
+    for path, text in files.items():
+        line = f"cd {shlex.quote(host.workdir)} && umask 077 && mkdir -p {shlex.quote(str(path.parent))} && " \
+               f"cat > {shlex.quote(str(path))}"
+        res = subprocess.run(on_host(host, line), input=text, text=True, capture_output=True, timeout=PREFIX_TIMEOUT_S)
+        if res.returncode != 0:
+            raise RuntimeError(f"writing {path} on {host.name}: {res.stderr.strip() or f'exit {res.returncode}'}")
+
+
+def credential_files(cfg: table.RunConfig, placed: list[tuple[ProcSpec, Host]], host: Host) -> dict[Path, str]:
+    """What the host's router and processes need of the run's credentials (written on the
+    launcher's machine by ``deploy.credentials``)."""
+    paths = []
+    if cfg.lock_down:
+        from deploy.credentials import tls_files
+
+        paths += [table.credentials_dir(cfg) / "zenoh-users.txt", table.zenoh_config_path(cfg, host.router),
+                  *tls_files(cfg, host.router)]
+        paths += [table.zenoh_config_path(cfg, spec.name) for spec, h in placed if h is host]
+    if cfg.signing:
+        paths += [table.v2x_credentials_path(cfg, int(spec.name[len("agent"):])) for spec, h in placed
+                  if h is host and spec.name.startswith("agent")]
+    return {p: p.read_text() for p in paths}
 
 
 def command(host: Host, spec: ProcSpec) -> list[str]:
@@ -443,6 +492,17 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
     """One run over the hosts: routers, mesh check, the launcher's run, then the routers stop."""
     cfg = opts.run
     cfg.log_dir.mkdir(parents=True, exist_ok=False)
+    cfg = run.prepare(cfg)
+    opts = replace(opts, run=cfg)
+    placed = place(cfg, hf)  # again: the command lines now carry the credentials' flags
+    routers = {h.name: None for h in hf.hosts}
+    launcher_config = None
+    if cfg.lock_down:
+        from deploy import credentials
+
+        written = credentials.lock_down(cfg, {h.router: h.address for h in hf.hosts})
+        routers = {h.name: written[h.router] for h in hf.hosts}
+        launcher_config = str(written[credentials.LAUNCHER])
     if opts.warm_up:
         run.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
         warm_hosts([h for h in hf.hosts if h.warm_up], cfg.params, cfg.log_dir, stop)
@@ -451,9 +511,13 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
     write_placement(cfg.run_dir / "hosts.json", hf, placed)
     try:
         for host in hf.hosts:
-            procs.start(router_spec(host, hf))
+            files = credential_files(cfg, placed, host)
+            if files:
+                put_files(host, files)
+        for host in hf.hosts:
+            procs.start(router_spec(host, hf, routers[host.name]))
         connect = hf.launcher_connect or hf.router_endpoints()
-        with session_scope(ZenohArgs(connect=connect), wait_s=MESH_TIMEOUT_S) as session:
+        with session_scope(ZenohArgs(connect=connect, config_file=launcher_config), wait_s=MESH_TIMEOUT_S) as session:
             t0 = time.monotonic()
             failure = wait_for_mesh(session, hf, procs, MESH_TIMEOUT_S, stop)
             if failure == "interrupted":
@@ -465,6 +529,8 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
             res = run.Launcher(opts, session, stop, procs, [spec for spec, _ in placed]).run()
     except ConnectionError as exc:
         return run.RunResult(run.EXIT_FAILED, None, f"the launcher reached no router: {exc}")
+    except RuntimeError as exc:  # a host refused the credentials
+        return run.RunResult(run.EXIT_FAILED, None, str(exc))
     finally:
         procs.stop_all(run.GRACE_S)  # the routers, and anything a failed start left behind
     return with_placement(res, cfg, placed)
@@ -488,17 +554,21 @@ def write_placement(path: Path, hf: HostsFile, placed: list[tuple[ProcSpec, Host
     path.write_text(json.dumps(record, indent=1) + "\n")
 
 
-def plan(hf: HostsFile, placed: list[tuple[ProcSpec, Host]]) -> str:
-    """What ``--dry-run`` prints: each host's router and processes, then every command."""
+def plan(hf: HostsFile, placed: list[tuple[ProcSpec, Host]], cfg: table.RunConfig | None = None) -> str:
+    """What ``--dry-run`` prints: each host's router and processes, then every command
+    (``cfg`` locked down: the routers' links are mutual TLS, each has its credentials)."""
+    locked = cfg is not None and cfg.lock_down
     lines = []
     for h in hf.hosts:
-        links = ", ".join(o.endpoint for o in hf.hosts[:hf.hosts.index(h)]) or "-"
-        lines.append(f"host {h.name}: router {h.listen_endpoint} (connects to {links}); "
+        links = ", ".join(o.tls_endpoint if locked else o.endpoint for o in hf.hosts[:hf.hosts.index(h)]) or "-"
+        listens = f"{h.listen_endpoint} and {h.tls_listen_endpoint}" if locked else h.listen_endpoint
+        lines.append(f"host {h.name}: router {listens} (connects to {links}); "
                      f"runs {' '.join(s.name for s, host in placed if host is h) or 'nothing else'}")
     lines.append(f"launcher connects to {', '.join(hf.launcher_connect or hf.router_endpoints())}")
     lines.append("commands:")
     for h in hf.hosts:
-        lines.append(f"  {h.router}: {shlex.join(command(h, router_spec(h, hf)))}")
+        config = table.zenoh_config_path(cfg, h.router) if locked else None
+        lines.append(f"  {h.router}: {shlex.join(command(h, router_spec(h, hf, config)))}")
     for spec, h in placed:
         lines.append(f"  {spec.name}: {shlex.join(command(h, spec))}")
     return "\n".join(lines)
@@ -515,6 +585,7 @@ def compose(cfg: table.RunConfig, hf: HostsFile) -> dict[str, Any]:
     Processes reach their host's router by service name; routers reach each other by
     the hosts' addresses, on published ports. Each host starts its own services.
     """
+    cfg = replace(cfg, lock_down=False, signing=False)  # no credentials in images (docs/multihost.md)
     build = {"context": "..", "dockerfile": "deploy/Dockerfile"}
     services: dict[str, Any] = {}
     for h in hf.hosts:
@@ -561,7 +632,7 @@ def _yaml(obj: dict[str, Any], depth: int = 0) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = run.build_parser(prog="autocast deploy", description=__doc__)
+    ap = run.build_parser(prog="autocast deploy", description=__doc__, lock_down_default=True)
     ap.add_argument("--hosts", required=True, metavar="FILE", help="the hosts file (deploy/hosts.example.toml)")
     ap.add_argument("--dry-run", action="store_true", help="print where each process runs and every command; "
                     "start nothing")
@@ -579,9 +650,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return run.EXIT_BAD_INPUT
     if args.dry_run:
-        print(plan(hf, placed))
+        print(plan(hf, placed, opts.run))
         return 0
     if args.compose:
+        if args.sign:  # asked for, and it would silently not be: the images hold no credentials
+            print("error: --sign needs each run's credentials, which --compose does not write (docs/multihost.md)",
+                  file=sys.stderr)
+            return run.EXIT_BAD_INPUT
+        if args.lock_down:
+            print("note: the compose file is not locked down (--compose writes no credentials; docs/multihost.md)",
+                  file=sys.stderr)
         how = shlex.join(["autocast", "deploy", *(sys.argv[2:] if argv is None else argv)])
         Path(args.compose).write_text(compose_text(opts.run, hf, how))
         print(f"wrote {args.compose}")

@@ -150,6 +150,7 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
 
     from protocol.codec import decode
     from protocol.messages import ChannelStats, ControlMsg
+    from protocol.security import opened
 
     offers: dict[tuple[int, int], dict[int, tuple[float, int]]] = {}
     played: dict[tuple[int, int, int], list[float]] = {}
@@ -161,7 +162,7 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
             return []
         for _, channel, message in reader.iter_messages(topics=topics):
             try:
-                msg = decode(message.data)
+                msg = opened(decode(message.data))  # a signed control message: its body
             except Exception:  # a malformed payload the recorder kept; the rest still counts
                 continue
             if isinstance(msg, ControlMsg):

@@ -29,8 +29,9 @@ WAIT_BEFORE_DROP_US = 200_000
 LINK_LOG_PERIOD_S = 2.0
 
 
-def router_config(listen: list[str], connect: list[str]) -> zenoh.Config:
-    conf = make_config(ZenohArgs(tuple(listen), tuple(connect)))
+def router_config(listen: list[str], connect: list[str], config_file: str | None = None) -> zenoh.Config:
+    """``config_file``: the run's credentials and ACL for this router (deploy.credentials)."""
+    conf = make_config(ZenohArgs(tuple(listen), tuple(connect), config_file))
     conf.insert_json5("adminspace/enabled", "true")
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(WAIT_BEFORE_DROP_US))
     conf.insert_json5("connect/exit_on_failure", "false")  # a peer router that is not up yet is retried
@@ -44,16 +45,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="where this host's processes (and the other routers) reach this router")
     ap.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="another host's router")
     ap.add_argument("--name", default="", help="the host's name, for the log")
+    ap.add_argument("--zenoh-config", default=None, metavar="FILE",
+                    help="the router's password, the run's password dictionary and ACL (autocast deploy's lock-down)")
     ap.add_argument("--log-level", default="INFO")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format=f"%(asctime)s router {args.name} %(levelname)s %(message)s")
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    session = zenoh.open(router_config(args.listen, args.connect))
+    session = zenoh.open(router_config(args.listen, args.connect, args.zenoh_config))
     try:
-        log.info("router %s listening on %s, connecting to %s", session.zid(), ", ".join(args.listen),
-                 ", ".join(args.connect) or "nobody")
+        log.info("router %s listening on %s, connecting to %s%s", session.zid(), ", ".join(args.listen),
+                 ", ".join(args.connect) or "nobody", " (locked down)" if args.zenoh_config else "")
         linked: set[str] = set()
         while not stop.wait(LINK_LOG_PERIOD_S):
             now = {str(z) for z in session.info.routers_zid()}

@@ -40,6 +40,7 @@ from deploy.procs import ProcessManager, ProcSpec, exit_records
 from protocol import faults, keys
 from protocol.codec import decode, encode
 from protocol.messages import MapMsg, Mission, Outcome, Scan
+from protocol.security import REJECTED_LINE
 from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
 from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
@@ -55,7 +56,9 @@ GRACE_S = 3.0
 # whose egress queue (two batches) stays full for 1 ms, e.g. behind a 1.3 MB scan to the
 # recorder: measured, commands went missing from the log and, before the agents sent them
 # with BLOCK, from the world. 200 ms of patience costs nothing when queues are healthy.
-HUB_CONFIG_JSON5 = "{transport: {link: {tx: {queue: {congestion_control: {drop: {wait_before_drop: 200000}}}}}}}\n"
+HUB_CONFIG = {"transport": {"link": {"tx": {"queue": {"congestion_control": {"drop": {"wait_before_drop": 200000}}}}}}}
+HUB_CONFIG_JSON5 = json.dumps(HUB_CONFIG) + "\n"
+SIGN_DEFAULT = False  # see docs/security.md for what signing costs an agent
 
 
 class InputError(ValueError):
@@ -91,8 +94,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return build_parser().parse_args(argv)
 
 
-def build_parser(prog: str = "autocast run", description: str | None = __doc__) -> argparse.ArgumentParser:
-    """The run's flags; ``autocast deploy`` adds its own to the same parser."""
+def build_parser(prog: str = "autocast run", description: str | None = __doc__,
+                 lock_down_default: bool = False) -> argparse.ArgumentParser:
+    """The run's flags; ``autocast deploy`` adds its own to the same parser (and locks
+    Zenoh down by default: its processes span hosts)."""
     from vehicle_agent.__main__ import SCHEMES
 
     ap = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -113,6 +118,13 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__) 
                     help="the V2V radio: a registered profile or package.module:NAME (default lte-direct; "
                          "python -m channel_proxy --list-profiles)")
     ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
+    sec = ap.add_argument_group("security (docs/security.md)")
+    sec.add_argument("--sign", action=argparse.BooleanOptionalAction, default=SIGN_DEFAULT,
+                     help="V2X messages signed by each vehicle's certificate from the run's authority and verified "
+                          f"by every receiver (default {'on' if SIGN_DEFAULT else 'off'})")
+    sec.add_argument("--lock-down", action=argparse.BooleanOptionalAction, default=lock_down_default,
+                     help="Zenoh: a password per process, and an access-control list that lets each process put "
+                          f"only on its own keys (default {'on' if lock_down_default else 'off'})")
     ap.add_argument("--json", action="store_true", help="end stdout with the outcome as one JSON line")
     ap.add_argument("--out", default="runs", metavar="DIR", help="runs go to DIR/<run id>/ (default runs/)")
     ap.add_argument("--run-id", default=None, help="default: <date>-<time>-<4 hex>")
@@ -181,7 +193,7 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
         raise InputError(str(exc)) from None
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
                           agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
-                          channel_profile=profile)
+                          channel_profile=profile, signing=args.sign, lock_down=args.lock_down)
     return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
 
 
@@ -282,10 +294,25 @@ def _warm_agent_kernels(sim) -> None:
     warm_scheduler()
 
 
-def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5) -> tuple[zenoh.Session, str]:
-    """The launcher's router session on a free loopback port, closed with ``stack``."""
-    config = run_dir / "zenoh-hub.json5"
-    config.write_text(HUB_CONFIG_JSON5)
+def prepare(cfg: table.RunConfig) -> table.RunConfig:
+    """The run's V2X credentials, if it signs (``deploy.credentials``); before the table's
+    command lines are made."""
+    from deploy import credentials
+
+    return credentials.issue_v2x(cfg) if cfg.signing and not cfg.authority else cfg
+
+
+def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5,
+             locked: table.RunConfig | None = None) -> tuple[zenoh.Session, str]:
+    """The launcher's router session on a free loopback port, closed with ``stack``;
+    ``locked``: the run whose Zenoh is locked down (its processes' passwords and ACL)."""
+    if locked is not None and locked.lock_down:
+        from deploy import credentials
+
+        config = credentials.hub_config(locked, HUB_CONFIG)
+    else:
+        config = run_dir / "zenoh-hub.json5"
+        config.write_text(HUB_CONFIG_JSON5)
     for attempt in range(tries):
         endpoint = free_endpoint()
         try:
@@ -423,18 +450,23 @@ class Launcher:
         result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
                        "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None,
                        "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line
-                                     for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()}})
+                                     for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()},
+                       "signed": self.cfg.signing, "lock_down": self.cfg.lock_down})
+        if self.cfg.signing:
+            result["rejected"] = {name: {k: r[k] for k in ("total", "by_reason", "by_stream")}
+                                  for name, r in exit_records(self.cfg.log_dir, REJECTED_LINE).items()}
         return RunResult(EXIT_SAFE if result["outcome"] == "safe" else EXIT_JUDGED, result)
 
 
 def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
     """One run from validated options; ``stop`` (Ctrl-C) ends it early and cleanly."""
     opts.run.log_dir.mkdir(parents=True, exist_ok=False)
+    opts = replace(opts, run=prepare(opts.run))
     if opts.warm_up:
         warm_numba_caches(opts.run.params)
     with ExitStack() as stack:
         stack.enter_context(process_factory.activated())  # warm, and before any Zenoh session: see its docstring
-        session, endpoint = open_hub(stack, opts.run.run_dir)
+        session, endpoint = open_hub(stack, opts.run.run_dir, locked=opts.run)
         opts = replace(opts, run=replace(opts.run, hub=endpoint))
         return Launcher(opts, session, stop).run()
 

@@ -40,6 +40,9 @@ class RunConfig:
     agent_log_level: str = "WARNING"  # N agents at INFO would bury the other logs
     scheduler: str | None = None  # None: the scheme's own
     channel_profile: str = DEFAULT_PROFILE  # the V2V radio, played by the proxy, assumed by the agents
+    signing: bool = False  # V2X messages signed and verified (docs/security.md)
+    authority: str = ""  # the run's authority's public key (hex) once credentials are issued (deploy.credentials)
+    lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.credentials)
 
     @property
     def mcap_path(self) -> Path:
@@ -77,8 +80,25 @@ def needs_proxy(scheme: str) -> bool:
     return scheme not in NO_PROXY_SCHEMES
 
 
-def _common(cfg: RunConfig) -> tuple[str, ...]:
-    return ("--run-id", cfg.run_id, "--connect", cfg.hub)
+def _common(cfg: RunConfig, name: str) -> tuple[str, ...]:
+    flags = ("--run-id", cfg.run_id, "--connect", cfg.hub)
+    if cfg.lock_down:
+        flags += ("--zenoh-config", str(zenoh_config_path(cfg, name)))
+    return flags
+
+
+def credentials_dir(cfg: RunConfig) -> Path:
+    return cfg.run_dir / "credentials"
+
+
+def v2x_credentials_path(cfg: RunConfig, vid: int) -> Path:
+    """Vehicle ``vid``'s key and certificate (``protocol.security.Credentials``)."""
+    return credentials_dir(cfg) / f"{agent_name(vid)}.v2x.json"
+
+
+def zenoh_config_path(cfg: RunConfig, name: str) -> Path:
+    """Process (or router) ``name``'s Zenoh config with its password (``deploy.credentials``)."""
+    return credentials_dir(cfg) / f"{name}.zenoh.json5"
 
 
 def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
@@ -86,15 +106,15 @@ def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
     meta = {"scenario": p.scenario, "vehicles": p.vehicles, "seed": p.seed, "scheme": cfg.scheme,
             "scheduler": cfg.scheduler or "", "channel_profile": cfg.channel_profile,
             "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
-            "mode": "realtime" if cfg.realtime else "lockstep"}
+            "mode": "realtime" if cfg.realtime else "lockstep", "signed": cfg.signing, "lock_down": cfg.lock_down}
     flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
-    return (*_common(cfg), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level,
+    return (*_common(cfg, RECORDER), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level,
             "--json-mirror", *flags)  # JSON beside msgpack: Foxglove and mcap tools read it (docs/viewing.md)
 
 
 def world_args(cfg: RunConfig) -> tuple[str, ...]:
     p = cfg.params
-    flags = [*_common(cfg), "--agents", "external", "--json", "--log-level", cfg.log_level,
+    flags = [*_common(cfg, WORLD), "--agents", "external", "--json", "--log-level", cfg.log_level,
              "--scenario", p.scenario, "--vehicles", str(p.vehicles), "--collider-speed", str(p.collider_speed_kmh),
              "--delta", str(p.delta_s), "--seed", str(p.seed), "--duration", str(p.duration_s),
              "--agent-timeout-s", str(cfg.agent_timeout_s)]
@@ -102,22 +122,35 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
         flags.append("--realtime")
     if cfg.scheme != "lane":  # every agent pipeline but the blind lane follower reports the ego's fused view
         flags.append("--ego-reports")
+    if cfg.signing:
+        flags += ["--authority", _authority(cfg)]
     return tuple(flags)
 
 
+NOT_ISSUED = "ISSUED-AT-LAUNCH"  # --dry-run: the authority's key does not exist yet
+
+
+def _authority(cfg: RunConfig) -> str:
+    return cfg.authority or NOT_ISSUED
+
+
 def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
-    flags = [*_common(cfg), "--seed", str(cfg.params.seed), "--log-level", cfg.log_level,
+    flags = [*_common(cfg, PROXY), "--seed", str(cfg.params.seed), "--log-level", cfg.log_level,
              "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v"]
     if cfg.scheme != EMP_SCHEME:
         flags += ["--profile", cfg.channel_profile]
     if cfg.realtime:
         flags.append("--realtime")
+    if cfg.signing:  # receivers verify: the medium relays every frame of a slot
+        flags.append("--relay-extra-frames")
     return tuple(flags)
 
 
 def agent_args(cfg: RunConfig, vid: int) -> tuple[str, ...]:
-    flags = [*_common(cfg), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level", cfg.agent_log_level,
-             "--channel-profile", cfg.channel_profile]
+    flags = [*_common(cfg, agent_name(vid)), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level",
+             cfg.agent_log_level, "--channel-profile", cfg.channel_profile]
     if cfg.scheduler:
         flags += ["--scheduler", cfg.scheduler]
+    if cfg.signing:
+        flags += ["--credentials", str(v2x_credentials_path(cfg, vid))]
     return tuple(flags)

@@ -34,8 +34,9 @@ from deploy.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, Prelude, i
                            received_world, run_metadata, scan_points, stack)
 from protocol.codec import MalformedMessage, decode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
-                               EmpBundle, EmpUpload, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Tick,
+                               EmpBundle, EmpUpload, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Signed, Tick,
                                VehicleSpec, WorldTruth)
+from protocol.security import opened
 from vehicle_agent.frames import sensor_to_world
 
 log = logging.getLogger("deploy.view")
@@ -253,6 +254,12 @@ class Scene:
                          EmpBundle: self.emp_bundle}
 
     def add(self, topic: str, msg: object) -> None:
+        if isinstance(msg, Signed):  # a vehicle's signed message: shown as what it says (not checked here)
+            body = opened(msg)
+            if body is None:
+                self.stats.count_malformed(topic, MalformedMessage("a signed envelope whose body does not decode"))
+                return
+            msg = body
         handler = self.handlers.get(type(msg))
         if handler is None:
             return
@@ -401,13 +408,18 @@ class Scene:
 
     def ctrl_bundle(self, b: CtrlBundle) -> None:
         """What each receiver heard: a count, and the boxes of the senders it heard, where
-        their control messages put them (what the vehicle knows of the others)."""
+        their control messages put them (what the vehicle knows of the others). A signed
+        run's messages are read through their envelopes, unverified; of a slot only its
+        first frame, the one the medium played as the sender's (any other is relayed
+        after it and its receivers drop it: docs/security.md)."""
         sent: list[ControlMsg | None] = []
-        for raw in b.messages:
+        for s, raw in enumerate(b.messages):
             try:
-                sent.append(decode(raw, ControlMsg))
+                msg = opened(decode(raw))
             except MalformedMessage:
-                sent.append(None)
+                msg = None
+            own = s == 0 or b.senders[s] != b.senders[s - 1]
+            sent.append(msg if own and isinstance(msg, ControlMsg) else None)
         for receiver, row in zip(b.receivers.tolist(), b.heard):
             heard = [m for m in (sent[s] for s in np.flatnonzero(row).tolist()) if m is not None]
             self.scalar(f"vehicles/{receiver}/heard", len(heard), self.role_name(receiver))

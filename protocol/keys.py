@@ -57,6 +57,11 @@ def report(run: str, vid: int | str) -> str:
     return f"{_run(run)}/v/{_vid(vid)}/report"
 
 
+def rejected(run: str, vid: int | str) -> str:
+    """What an agent rejected as not authentic so far (``Rejected``), for the log."""
+    return f"{_run(run)}/v/{_vid(vid)}/rejected"
+
+
 def alive(run: str, vid: int | str) -> str:
     """Liveliness token key: present while the agent's session is up."""
     return f"{_run(run)}/alive/v/{_vid(vid)}"

@@ -202,7 +202,14 @@ def _no_counts() -> np.ndarray:
     return np.zeros(0, dtype=np.int64)
 
 
-@message(7, version=2)
+DIGEST_BYTES = 16  # BLAKE2b-128 of an object's payload (protocol.security.payload_digest)
+
+
+def _no_digests() -> np.ndarray:
+    return np.zeros((0, DIGEST_BYTES), dtype=np.uint8)
+
+
+@message(7, version=3)
 class ControlMsg:
     """One vehicle's control message for a decision interval (paper 4.1).
 
@@ -210,7 +217,13 @@ class ControlMsg:
     has gone unscheduled while still occluded from and relevant to some receiver, as its
     sender counted them (the starvation compensation's state, so every vehicle that
     hears the message weighs the object alike); empty means 0 for every object.
-    Version 2 added it."""
+    Version 2 added it.
+
+    ``digests[t]`` is the digest of the payload object ``objects.object_id[t]`` will
+    have if it is scheduled this interval: a signed control message vouches for its
+    sender's object payloads too, so a receiver checks a payload with one signature per
+    sender and interval (docs/security.md). Empty when the run does not sign. Version 3
+    added it; it is not on air (``medium.control_onair_bytes`` counts the map only)."""
 
     tick: int
     t_sim_s: float
@@ -221,6 +234,7 @@ class ControlMsg:
     objects: ObjectMap
     heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
     unscheduled: np.ndarray = field(default_factory=_no_counts)  # int64 (n,) or (0,): m per object
+    digests: np.ndarray = field(default_factory=_no_digests)  # uint8 (n, DIGEST_BYTES) or (0, DIGEST_BYTES)
 
     def starvation(self) -> np.ndarray:
         """int64 (n,): m of every object of the map; zeros if none was reported or the
@@ -238,14 +252,16 @@ class CtrlBundle:
     every sender, and which receiver heard which. One radio broadcast is heard by many,
     so the proxy publishes one bundle per interval rather than a copy of the same
     messages per receiver; a receiver takes its row (``heard_by``). Its arrival closes
-    the control phase."""
+    the control phase. A sender's slot normally holds one message; any other frame
+    that came on its key follows it, heard by the same receivers (the medium judges
+    nobody's identity: channel_proxy/proxy.py)."""
 
     tick: int
     t_sim_s: float
-    senders: np.ndarray  # int64 (S,), ascending
+    senders: np.ndarray  # int64 (S,), non-decreasing: the slot (vehicle) each message came in
     receivers: np.ndarray  # int64 (C,), ascending: the interval's live vehicles
-    heard: np.ndarray  # bool (C, S): receiver c heard sender s
-    messages: list[bytes]  # (S,) each sender's raw ControlMsg
+    heard: np.ndarray  # bool (C, S): receiver c heard message s
+    messages: list[bytes]  # (S,) the raw messages (a ControlMsg, or one in a Signed envelope)
 
     def __post_init__(self) -> None:
         _check_mask("heard", self.heard, self.receivers, len(self.senders))
@@ -254,8 +270,19 @@ class CtrlBundle:
 
     def heard_by(self, vid: int) -> list[bytes] | None:
         """The raw control messages ``vid`` heard; None if it is not a receiver."""
+        frames = self.frames_heard_by(vid)
+        return None if frames is None else [raw for _, raw in frames]
+
+    def frames_heard_by(self, vid: int) -> list[tuple[int, bytes]] | None:
+        """(sender, raw control message) of each message ``vid`` heard; None if it is not a receiver."""
         row = _row_of(self.receivers, vid)
-        return None if row is None else [self.messages[s] for s in np.flatnonzero(self.heard[row]).tolist()]
+        if row is None:
+            return None
+        return [(int(self.senders[s]), self.messages[s]) for s in np.flatnonzero(self.heard[row]).tolist()]
+
+    def frames_of(self, sender: int) -> list[bytes]:
+        """Every raw control message in ``sender``'s slot, heard by anybody or not."""
+        return [self.messages[s] for s in np.flatnonzero(self.senders == sender).tolist()]
 
 
 def _row_of(receivers: np.ndarray, vid: int) -> int | None:
@@ -302,7 +329,8 @@ class Reception:
 class DataBundle:
     """The data phase's outcome for all receivers at once: every reception, ordered by
     reception time (then sender, object), and which receiver decoded which. Published
-    once per interval (``received_by`` gives one receiver's); closes the data phase."""
+    once per interval (``received_by`` gives one receiver's); closes the data phase.
+    Receptions of frames beyond a sender's own (channel_proxy/proxy.py) come last."""
 
     tick: int
     t_sim_s: float
@@ -381,3 +409,46 @@ class AgentReport:
     fused_xy: np.ndarray  # float32 (n, 2): every above-ground point of the fused view, world frame
     received_points: int  # how many of them came from other vehicles
     braking: bool  # the planner is braking for a predicted conflict
+
+
+# ------------------------------------------------------------ authenticated V2X messages
+
+
+@record
+class Certificate:
+    """A vehicle's certificate (IEEE 1609.2's, reduced): the run's authority binds the
+    Ed25519 ``public_key`` to vehicle ``vid`` of run ``run_id`` for sim times
+    [``valid_from_s``, ``valid_until_s``]; ``signature`` is the authority's over the
+    other fields (``protocol.security.certificate_tbs``)."""
+
+    run_id: str
+    vid: int
+    valid_from_s: float
+    valid_until_s: float
+    public_key: bytes  # 32 bytes, raw Ed25519
+    signature: bytes  # 64 bytes, the authority's
+
+
+@message(14)
+class Signed:
+    """A vehicle's message and its signature (1609.2's SignedData, reduced): ``body`` is
+    the encoded message, ``signature`` the certificate key's Ed25519 signature over a
+    context string and ``body``. ``tick`` and ``t_sim_s`` repeat the body's, for the
+    recorder; a receiver checks them against the body it verified."""
+
+    tick: int
+    t_sim_s: float
+    certificate: Certificate
+    body: bytes
+    signature: bytes  # 64 bytes
+
+
+@message(15)
+class Rejected:
+    """What a process has rejected as not authentic so far (``protocol.security``), by
+    reason and by stream; published by an agent after a tick in which the counts grew."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    counts: dict[str, Any]  # {"total": n, "by_reason": {reason: n}, "by_stream": {stream: {reason: n}}}

@@ -23,6 +23,13 @@ settings.register_profile("fuzz", max_examples=10_000, deadline=None,
 settings.load_profile(os.environ.get("AUTOCAST_HYPOTHESIS", "ci"))
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Longest first: the ``heavy`` tests lead the queue (a stable sort keeps the rest in
+    file order), so under ``--dist load`` no worker picks up a half-minute test when the
+    other is nearly done."""
+    items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -6,6 +6,7 @@ ego's view of the collider, a digest of the whole ego-collider distance series, 
 what the channel carried (summed from the proxy's ``net/stats`` in the run's MCAP).
 
     python tests/golden_outcomes.py --check            # re-run every entry, diff against the file
+    python tests/golden_outcomes.py --check --sign     # the same with V2X signing on (or --no-sign)
     python tests/golden_outcomes.py --check --only left_turn/autocast/20s
     python tests/golden_outcomes.py --record           # re-record (only for a change meant to alter results)
     python tests/golden_outcomes.py --check --scans all --out runs/golden   # keep the scans: then
@@ -70,10 +71,12 @@ def channel_totals(mcap_path: Path) -> dict[str, int]:
     return totals
 
 
-def run_entry(scenario: str, scheme: str, duration_s: float, out: Path, scans: str = "none") -> dict[str, Any]:
+def run_entry(scenario: str, scheme: str, duration_s: float, out: Path, scans: str = "none",
+              extra: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``extra``: more ``autocast run`` flags (``--sign``, ``--no-sign``: the results must not change)."""
     cmd = [sys.executable, "-m", "deploy.cli", "run", "--scenario", scenario, "--scheme", scheme,
            "--vehicles", str(VEHICLES), "--seed", "0", "--json", "--out", str(out), "--scans", scans,
-           "--log-level", "WARNING", "--agent-timeout-s", "300", "--duration", f"{duration_s:g}"]
+           "--log-level", "WARNING", "--agent-timeout-s", "300", "--duration", f"{duration_s:g}", *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
     lines = proc.stdout.strip().splitlines()
     if not lines or not lines[-1].startswith("{"):
@@ -104,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/golden", help="where the runs go")
     ap.add_argument("--scans", default="none", help="scans the runs' logs keep: none (default) or all, to replay "
                                                     "every agent from them (python -m vehicle_agent.replay)")
+    ap.add_argument("--sign", action=argparse.BooleanOptionalAction, default=None,
+                    help="run every entry with V2X signing on (or off); default: autocast run's default")
     args = ap.parse_args(argv)
     only = set(args.only.split(",")) if args.only else None
     todo = [e for e in matrix() if only is None or entry_name(*e) in only]
@@ -111,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for scenario, scheme, duration in todo:
         name = entry_name(scenario, scheme, duration)
-        got = run_entry(scenario, scheme, duration, Path(args.out), args.scans)
+        extra = () if args.sign is None else ("--sign",) if args.sign else ("--no-sign",)
+        got = run_entry(scenario, scheme, duration, Path(args.out), args.scans, extra)
         if args.record:
             golden[name] = got
             print(f"{name}: {got['outcome']} ticks={got['ticks']} closest={got['closest_distance_m']}", flush=True)

@@ -25,6 +25,7 @@ def headline(name: str, stdout: str) -> dict[str, float]:
     return {key: float(value) for key, _, value in pairs}
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("name", list(HEADLINE_KEYS))
 def test_each_bench_prints_its_headline_in_quick_mode(name, tmp_path):
     res = subprocess.run([sys.executable, "-m", "deploy.cli", "bench", name, "--quick"], cwd=tmp_path,

@@ -80,6 +80,10 @@ def got(bundle) -> list[tuple[int, int, float]]:
 # ------------------------------------------------------------------ an ideal channel
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_channel_process")
+
+
 @pytest.fixture(scope="module")
 def ideal():
     """One proxy (no link loss, unlimited range) for several tests; each takes fresh ticks."""
@@ -108,6 +112,43 @@ def test_a_burst_larger_than_the_interval_is_cut_at_capacity(ideal):
     d = stats["data"]
     assert d["overflow_tx"] == 2 and d["overflow_bytes"] == 18000 and d["utilization"] == pytest.approx(1.0)
     assert [r.payload for r in data[2].receptions] == [bytes([i]) * 9000 for i in range(10)]
+
+
+def test_a_signed_runs_medium_relays_every_frame_of_a_slot_after_the_vehicles_own():
+    """``--relay-extra-frames`` (a signed run: receivers verify). In vehicle 3's slot: a
+    frame naming vehicle 1 that comes before 3's own, 3's own, a second frame naming 3.
+    The medium plays 3's own (its position: 1 hears 3 at 30 m, its size) and relays the
+    other two after it, heard by the same receivers. A second DataTx in 3's slot: its
+    object 33 shares the fate of 3's own object 33, its unknown object 99 that of 3's
+    first decoded one; nobody's reception changes."""
+    with proxy("--profile", "ideal", "--relay-extra-frames") as ep, driver(ep, [1, 2, 3]) as h:
+        k = 0
+        h.tick(k)
+        foreign, second = encode(ctrl(1, k, (500.0, 0.0))), encode(ctrl(3, k, (900.0, 0.0)))
+        # one session, one link, one receiving thread: the proxy files them in this order,
+        # and 1's and 2's own, which close the phase, come last
+        h.put(keys.net_ctrl_tx(RUN, 3), foreign)
+        h.send_ctrl(ctrl(3, k, (30.0, 0.0)))
+        h.put(keys.net_ctrl_tx(RUN, 3), second)
+        h.put(keys.net_ctrl_tx(RUN, 3), second)  # the same bytes again: a duplicate, dropped
+        for v in (1, 2):
+            h.send_ctrl(ctrl(v, k, (10.0 * v, 0.0)))
+        bundles = h.wait_ctrl(k)
+        assert bundles[1].messages == [encode(ctrl(2, k, (20.0, 0.0))), encode(ctrl(3, k, (30.0, 0.0))), foreign,
+                                       second]
+        assert bundles[3].messages == [encode(ctrl(1, k, (10.0, 0.0))), encode(ctrl(2, k, (20.0, 0.0)))]
+        h.put(keys.net_data_tx(RUN, 3), encode(DataTx(k, k * 0.1, 1, [Transmission(33, 0.0, b"x" * 10),
+                                                                   Transmission(99, 0.0, b"y" * 20)])))
+        h.send_data(DataTx(k, k * 0.1, 3, [tx(33, 5 * MS, 900)]))
+        h.send_data(DataTx(k, k * 0.1, 1, [tx(11, 0.0, 900)]))
+        h.send_data(DataTx(k, k * 0.1, 2, []))
+        data = h.wait_data(k)
+        stats = h.wait_stats(k)
+        assert got(data[2]) == [(1, 11, 0.001), (3, 33, 0.006), (3, 33, 0.006), (3, 99, 0.006)]
+        assert [r.payload for r in data[2].receptions][2:] == [b"x" * 10, b"y" * 20]
+        assert got(data[3]) == [(1, 11, 0.001)] and got(data[1]) == [(3, 33, 0.006), (3, 33, 0.006), (3, 99, 0.006)]
+        assert stats["ctrl"]["extra_frames"] == 2 and stats["data"]["extra_receptions"] == 2
+        assert stats["data"]["transmissions"] == 2 and stats["duplicate"] == 1
 
 
 def test_a_malformed_packet_is_dropped_and_counted_and_the_proxy_keeps_running(ideal):

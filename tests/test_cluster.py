@@ -144,6 +144,7 @@ def test_the_report_finds_mcaps_under_the_runs_dir_and_names_the_missing(tmp_pat
 # ---------------------------------------------------------------------------- real clusters
 
 
+@pytest.mark.heavy
 def test_a_cluster_sweep_judges_as_the_local_one_and_reports(tmp_path, dask_cluster):
     """Two scenarios x two schemes through a scheduler and two workers, and the same
     plan locally: the same judged outcomes, field by field (lock-step runs are
@@ -185,6 +186,7 @@ def test_a_cluster_sweep_judges_as_the_local_one_and_reports(tmp_path, dask_clus
         in summary
 
 
+@pytest.mark.heavy
 def test_a_worker_killed_mid_run_gets_its_run_retried_once_elsewhere(tmp_path, dask_cluster):
     """Worker A's runs hang at tick 5. A alone takes the first run; once its pids.json
     shows it started, worker B joins and A is SIGKILLed: the run is run again on B,
@@ -219,6 +221,7 @@ def test_a_worker_killed_mid_run_gets_its_run_retried_once_elsewhere(tmp_path, d
     wait_until(lambda: not leftovers([first, f"{first}-a2"]), "the orphaned launcher exited", timeout_s=60)
 
 
+@pytest.mark.heavy
 def test_ctrl_c_stops_the_runs_on_the_workers_and_a_lost_scheduler_stops_the_sweep(tmp_path, dask_cluster):
     """A plan larger than the workers offer is refused, naming the resource. Ctrl-C
     while a run hangs on a worker: exit 130, nothing recorded, the run's processes

@@ -15,6 +15,10 @@ from world_server.sim import Simulation
 EGO, TRUCK = 0, 1
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_dataplane_world")
+
+
 @pytest.fixture(scope="module")
 def left_turn_at_5s():
     """Everyone drives its lane; the ego and truck agents perceive every tick up to t = 5 s."""

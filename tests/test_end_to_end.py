@@ -9,6 +9,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 
 def autocast_run(tmp_path, scheme: str) -> dict:
     proc = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--scenario", "red_light", "--vehicles", "5",
@@ -20,6 +22,7 @@ def autocast_run(tmp_path, scheme: str) -> dict:
     return json.loads(lines[-1]) | {"exit_code": proc.returncode}
 
 
+@pytest.mark.heavy
 def test_hidden_collider_single_is_unsafe_and_autocast_is_safe(tmp_path):
     single = autocast_run(tmp_path, "single")
     assert single["outcome"] in ("crash", "near_miss"), single

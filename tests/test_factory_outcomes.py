@@ -14,6 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from vehicle_agent.__main__ import SCHEMES
 from world_server.scenarios import SCENARIOS
 
@@ -29,17 +31,19 @@ def launch(out: Path, scenario: str, scheme: str, factory: str) -> subprocess.Po
                             env=dict(os.environ, AUTOCAST_FACTORY=factory))
 
 
-def test_every_scenario_and_scheme_ends_the_same_forked_or_not(tmp_path):
+def test_the_runs_cover_every_scenario_and_scheme():
     assert {sc for sc, _ in RUNS} == set(SCENARIOS) and {s for _, s in RUNS} == set(SCHEMES)
-    results: dict[tuple[str, str, str], dict] = {}
-    for scenario, scheme in RUNS:  # two launches at a time
-        procs = {factory: launch(tmp_path, scenario, scheme, factory) for factory in ("fork", "popen")}
-        for factory, proc in procs.items():
-            out, err = proc.communicate(timeout=600)
-            assert proc.returncode in (0, 1), f"{scenario} {scheme} {factory}: {err[-3000:]}"
-            results[scenario, scheme, factory] = json.loads(out.strip().splitlines()[-1])
-    for scenario, scheme in RUNS:
-        forked, fresh = (
-            {k: v for k, v in results[scenario, scheme, f].items() if k not in UNSTABLE} for f in ("fork", "popen"))
-        assert forked == fresh, (scenario, scheme)
-        assert forked["ticks"] == 10 and not forked["dead_agents"], (scenario, scheme)
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize(("scenario", "scheme"), RUNS)
+def test_a_run_ends_the_same_forked_or_not(tmp_path, scenario, scheme):
+    procs = {factory: launch(tmp_path, scenario, scheme, factory) for factory in ("fork", "popen")}  # both at once
+    results = {}
+    for factory, proc in procs.items():
+        out, err = proc.communicate(timeout=600)
+        assert proc.returncode in (0, 1), f"{scenario} {scheme} {factory}: {err[-3000:]}"
+        results[factory] = json.loads(out.strip().splitlines()[-1])
+    forked, fresh = ({k: v for k, v in results[f].items() if k not in UNSTABLE} for f in ("fork", "popen"))
+    assert forked == fresh
+    assert forked["ticks"] == 10 and not forked["dead_agents"]

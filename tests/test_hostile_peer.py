@@ -1,11 +1,16 @@
 """A hostile peer on a run's hub: thousands of malformed and wrong-typed payloads on
-every data key, while a real run (launcher, recorder, world, proxy, agents as
-processes) plays out in lock-step. The run must end judged exactly as without it, no
-process may die, and each process's malformed counter must equal, key by key, what
-the peer sent on the keys that process subscribes to."""
+every data key, and forgeries of a compromised vehicle (vehicle 1's own credentials)
+and of a stranger (deploy/hostile.py ``Forger``): commands and reports in the ego's
+name, control messages in its name claiming a phantom object of the highest reward,
+forged object payloads, replays of earlier genuine messages. A real signed run
+(launcher, recorder, world, proxy, agents as processes) plays out in lock-step. The
+run must end judged exactly as without the peer, no process may die, each process's
+malformed counter must equal, key by key, the garbage the peer sent on its keys, and
+every forgery must be rejected, for its reason, by every process it reached."""
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import signal
@@ -24,14 +29,17 @@ from deploy import table
 from deploy.hostile import KEY_TYPES, NOT_DATA, key_functions
 from deploy.procs import ProcSpec
 from deploy.recorder import EGO_VID, McapLog, subscriptions
-from deploy.run import Launcher, RunResult, open_hub, options_from, parse_args, warm_numba_caches
+from deploy.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare, warm_numba_caches
 from protocol import keys
-from protocol.codec import encode
-from protocol.messages import Tick
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import ChannelStats, CtrlBundle, DataBundle, Outcome, Rejected, Tick
 from protocol.session import DropCounter, ZenohArgs, query_one, session_scope
+from vehicle_agent.guard import CTRL_STREAM, DATA_STREAM
 
-FLAGS = ("--scenario", "left_turn", "--vehicles", "3", "--scheme", "autocast", "--duration", "2.5", "--seed", "2")
-UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped")
+FLAGS = ("--scenario", "left_turn", "--vehicles", "3", "--scheme", "autocast", "--duration", "2.5", "--seed", "2",
+         "--sign")
+UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped", "rejected")
+INSIDER, VICTIM = 1, 0  # the compromised vehicle (the occluder truck: it sends objects), the one it claims to be (the ego)
 
 
 def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, int | None]]:
@@ -39,17 +47,23 @@ def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, in
     more process on its hub; returns the result and every process's exit code."""
     opts = options_from(parse_args(["--out", str(out), "--run-id", run_id, *FLAGS]), hub="")
     opts.run.log_dir.mkdir(parents=True)
+    opts = replace(opts, run=prepare(opts.run))
     with ExitStack() as stack:
         session, endpoint = open_hub(stack, opts.run.run_dir)
         cfg = replace(opts.run, hub=endpoint)
         specs = table.processes(cfg)
         if hostile:
             vids = [str(v) for v in table.connected_vids(cfg.params)]
-            specs.append(ProcSpec("hostile", "deploy.hostile", ("--run-id", run_id, "--connect", endpoint,
-                                                                  "--vids", *vids, "--proxy")))
+            specs.append(ProcSpec("hostile", "deploy.hostile", (
+                "--run-id", run_id, "--connect", endpoint, "--vids", *vids, "--proxy", "--forge", "--insider",
+                str(table.v2x_credentials_path(cfg, INSIDER)), "--victim", str(VICTIM))))
         launcher = Launcher(replace(opts, run=cfg), session, threading.Event(), specs=specs)
         result = launcher.run()
     return result, {name: proc.returncode for name, (_, proc) in launcher.procs.procs.items()}
+
+
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_hostile_peer")
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +88,7 @@ def test_the_peer_covers_every_data_key():
     assert {fn for fn in key_functions() if fn not in NOT_DATA} == set(KEY_TYPES)
 
 
+@pytest.mark.heavy
 def test_the_run_ends_judged_as_without_the_hostile_peer_and_nobody_dies(runs):
     (calm, calm_codes), (hostile, codes) = runs
     assert calm.result is not None and hostile.result is not None, (calm.failure, hostile.failure)
@@ -89,6 +104,7 @@ def test_the_run_ends_judged_as_without_the_hostile_peer_and_nobody_dies(runs):
         # tearing down after its settle time (a loaded machine): never a crash
         assert set(exits.values()) <= {0, -signal.SIGINT}, exits
     assert all(r["total"] == 0 for r in calm.result["malformed"].values()), calm.result["malformed"]
+    assert all(r["total"] == 0 for r in calm.result["rejected"].values()), calm.result["rejected"]
 
 
 def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(runs):
@@ -108,9 +124,80 @@ def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(runs):
                          keys.net_emp_down(run, v)] for v in vids},
     }
     assert set(result["malformed"]) == set(listens)
+    signed = peer["signed_envelope"]  # a valid Signed envelope the world's verifier rejects: no certificate of ours
+    verified = {keys.cmd(run, v) for v in vids} | {keys.report(run, EGO_VID)}
     for name, ks in listens.items():
-        assert result["malformed"][name]["by_key"] == {k: sent[k] for k in sorted(ks)}, name
+        want = {k: sent[k] - (signed[k] if k in verified else 0) for k in sorted(ks)}
+        assert result["malformed"][name]["by_key"] == {k: n for k, n in want.items() if n}, name
     assert result["malformed_dropped"] == result["malformed"]["world"]["total"]
+    world = result["rejected"]["world"]["by_stream"]
+    for key in verified:
+        want = dict(peer["forged"].get(key, {}))
+        if signed[key]:
+            want["bad_certificate"] = want.get("bad_certificate", 0) + signed[key]
+        assert world.get(key, {}) == want, key
+
+
+def _messages(mcap: str, topics: list[str]):
+    """(topic, message) of every message on ``topics`` that decodes (the peer's garbage does not)."""
+    with open(mcap, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=topics):
+            try:
+                yield channel.topic, decode(message.data)
+            except MalformedMessage:
+                continue
+
+
+def test_every_forgery_was_rejected_for_its_reason_by_every_vehicle_it_reached(runs):
+    """What each agent was owed, read from the bundles the proxy published: each forged
+    control message in the insider's slot, at every receiver that heard that slot; each
+    forged payload, at every receiver that decoded it. Each agent's counts, at its exit
+    and in its last ``Rejected`` message in the MCAP, are exactly that; the world's are
+    in its ``Outcome`` in the MCAP too; the replayed control messages died at the medium."""
+    _, (hostile, _) = runs
+    run, result = "hostile", hostile.result
+    peer = _peer_report(Path(result["run_dir"]))
+    frames = peer["frames"]  # "<tick>:<sha256>" -> reason
+    owed: dict[str, dict[str, dict[str, int]]] = {}
+
+    def owe(receiver: int, stream: str, reason: str) -> None:
+        per = owed.setdefault(f"agent{receiver}", {}).setdefault(stream, {})
+        per[reason] = per.get(reason, 0) + 1
+
+    relayed: dict[str, set[str]] = {CTRL_STREAM: set(), DATA_STREAM: set()}
+    for topic, b in _messages(result["mcap"], [keys.net_ctrl_rx(run), keys.net_data_rx(run)]):
+        if topic == keys.net_ctrl_rx(run) and isinstance(b, CtrlBundle):  # not the peer's garbage of another type
+            for s, raw in enumerate(b.messages):
+                reason = frames.get(f"{b.tick}:{hashlib.sha256(raw).hexdigest()}")
+                for receiver in (b.receivers[b.heard[:, s]].tolist() if reason else []):
+                    owe(receiver, CTRL_STREAM, reason)
+                    relayed[CTRL_STREAM].add(reason)
+        elif topic == keys.net_data_rx(run) and isinstance(b, DataBundle):
+            for t, r in enumerate(b.receptions):
+                reason = frames.get(f"{b.tick}:{hashlib.sha256(r.payload).hexdigest()}")
+                for receiver in (b.receivers[b.decoded[:, t]].tolist() if reason else []):
+                    owe(receiver, DATA_STREAM, reason)
+                    relayed[DATA_STREAM].add(reason)
+    assert relayed == {CTRL_STREAM: {"unsigned", "bad_certificate", "wrong_key"},
+                       DATA_STREAM: {"bad_signature", "wrong_key", "replayed"}}, relayed  # the test tested something
+    agents = {n: r["by_stream"] for n, r in result["rejected"].items() if n != "world"}
+    assert agents == {n: owed.get(n, {}) for n in agents}
+    last = {}
+    vids = table.connected_vids(options_from(parse_args(["--run-id", "x", *FLAGS]), hub="").run.params)
+    mine = {keys.world_outcome(run): Outcome, keys.net_stats(run): ChannelStats,
+            **{keys.rejected(run, v): Rejected for v in vids}}
+    for topic, msg in _messages(result["mcap"], list(mine)):
+        if not isinstance(msg, mine[topic]):  # the peer's valid messages of another type
+            continue
+        if isinstance(msg, Rejected):
+            last[f"agent{msg.vid}"] = msg.counts["by_stream"]
+        elif isinstance(msg, Outcome):
+            last["world"] = msg.result["rejected"]["by_stream"]
+        else:
+            last["proxy late"] = msg.stats["late"]
+    assert {n: last.get(n, {}) for n in agents} == agents
+    assert last["world"] == result["rejected"]["world"]["by_stream"]
+    assert last["proxy late"] >= peer["forged"][keys.net_ctrl_tx(run, VICTIM)]["late"] > 0
 
 
 def test_the_recorder_kept_every_payload_it_could_not_read_on_a_malformed_channel(runs):

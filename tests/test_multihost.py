@@ -19,15 +19,17 @@ import socket
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
-from deploy import hosts, netns, table
+from deploy import credentials, hosts, netns, table
 from deploy.hosts import Host, HostProcessManager, HostsFile, load_hosts, parse_hosts, place
 from deploy.procs import ProcSpec
 from deploy.run import InputError, LaunchOptions, options_from, build_parser
+from protocol import keys
 from tests.conftest import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,12 +129,23 @@ def test_the_cli_refuses_a_bad_hosts_file_before_starting_anything(tmp_path):
 def test_dry_run_prints_every_hosts_router_and_command(tmp_path, capsys):
     assert hosts.main(["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert "host beta: router tcp/10.0.0.2:7447 (connects to tcp/10.0.0.1:7447); runs proxy agent1 agent2" in out
+    assert "host beta: router tcp/10.0.0.2:7447 and tls/10.0.0.2:7448 (connects to tls/10.0.0.1:7448); " \
+           "runs proxy agent1 agent2" in out  # locked down: routers link over mutual TLS
     assert "  world: ssh -o BatchMode=yes autocast@10.0.0.1 'cd /opt/autocast-py && exec env" in out
     assert not list(tmp_path.iterdir())
 
 
 # ---------------------------------------------------------------------------- docker compose (not run: no engine here)
+
+
+def test_compose_refuses_to_sign_and_says_it_is_not_locked_down(tmp_path, capsys):
+    """The images hold no credentials: a signed run asked for is refused, not run unsigned."""
+    out = tmp_path / "compose.yml"
+    flags = ["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--compose", str(out)]
+    assert hosts.main([*flags, "--sign"]) == 2 and not out.exists()
+    assert "--sign" in capsys.readouterr().err
+    assert hosts.main(flags) == 0 and out.exists()
+    assert "not locked down" in capsys.readouterr().err
 
 
 def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_path):
@@ -218,6 +231,7 @@ def _processes_in(ns: str) -> set[tuple[str, str, str]]:
     return out
 
 
+@pytest.mark.heavy
 def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_path):
     reason = netns.unavailable()
     if reason:
@@ -269,13 +283,13 @@ def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_pat
 def test_a_router_that_cannot_start_fails_the_run_at_once(tmp_path):
     """Host b's address is not on this machine (TEST-NET-1): its router cannot listen."""
     ports = []
-    for _ in range(2):
+    for _ in range(3):
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             ports.append(s.getsockname()[1])
-    hosts_file = tmp_path / "hosts.toml"
+    hosts_file = tmp_path / "hosts.toml"  # locked down (the default): a's routers' TLS port is a free one too
     hosts_file.write_text(f'[defaults]\nwarm_up = false\n'
-                          f'[[host]]\nname = "a"\naddress = "127.0.0.1"\nport = {ports[0]}\n'
+                          f'[[host]]\nname = "a"\naddress = "127.0.0.1"\nport = {ports[0]}\ntls_port = {ports[2]}\n'
                           f'run = ["world", "recorder", "proxy"]\nagents = "rest"\n'
                           f'[[host]]\nname = "b"\naddress = "192.0.2.1"\nport = {ports[1]}\n')
     out = subprocess.run([sys.executable, "-m", "deploy.cli", "deploy", "--hosts", str(hosts_file), *RUN_FLAGS,
@@ -300,6 +314,7 @@ def _pid_in(ns: str, module: str) -> int:
     raise AssertionError(f"no {module} process in {ns}")
 
 
+@pytest.mark.heavy
 def test_a_hosts_router_killed_mid_run_fails_the_run_and_leaves_nothing(tmp_path):
     """h1's router (the proxy's host) is SIGKILLed while the run is under way: agent 2
     hangs at tick 10 and may take 600 s to be declared dead, so the run cannot end on its
@@ -336,3 +351,59 @@ def test_a_hosts_router_killed_mid_run_fails_the_run_and_leaves_nothing(tmp_path
     with open(out / "cut" / "run.mcap", "rb") as f:
         assert make_reader(f).get_summary() is not None
     assert left == {}, f"processes left in the namespaces: {left}"
+
+
+# ---------------------------------------------------------------------------- the lock-down, over namespaces
+
+
+def _in_ns(ns: str, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "tests.acl_probe", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            start_new_session=True)
+
+
+def _lines(proc: subprocess.Popen, timeout: float = 120.0) -> list[str]:
+    out, err = proc.communicate(timeout=timeout)  # a safety net: each probe ends on an event
+    assert proc.returncode == 0, err[-3000:]
+    return out.splitlines()
+
+
+def test_a_locked_down_network_admits_only_the_runs_processes_each_on_its_own_keys(tmp_path):
+    """Two hosts (namespaces), each with its router as ``autocast deploy --lock-down``
+    configures it (the run's passwords, its ACL). A session with no password, or a wrong
+    one, cannot join either router. Agent 2's own session, on h1, puts a command on
+    vehicle 1's key and then on its own: the world's session on h0 gets its own and
+    never vehicle 1's (the same link carried both, the forged one first)."""
+    reason = netns.unavailable()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    cfg = options(tmp_path, "--lock-down", "--run-id", "acl").run
+    with netns.Lab(2) as lab:
+        hf = parse_hosts(tomllib.loads(lab.hosts_toml()))
+        written = credentials.lock_down(cfg, {h.router: h.address for h in hf.hosts})
+        procs = HostProcessManager(tmp_path / "logs", {h.router: h for h in hf.hosts})
+        try:
+            for h in hf.hosts:
+                procs.start(hosts.router_spec(h, hf, written[h.router]))
+            logs = [tmp_path / "logs" / f"{h.router}.log" for h in hf.hosts]
+            wait_until(lambda: all("linked to 1 other router(s)" in p.read_text() for p in logs if p.exists())
+                       and all(p.exists() for p in logs), "the two routers authenticated each other", 120)
+            h0, h1 = hf.hosts
+            wrong = tmp_path / "wrong.json5"
+            wrong.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": "agent2", "password": "guess"}}}}))
+            strangers = [_in_ns(lab.hosts[1].ns, "join", h1.endpoint), _in_ns(lab.hosts[1].ns, "join", h0.endpoint),
+                         _in_ns(lab.hosts[0].ns, "join", h0.endpoint, str(wrong))]
+            member = _in_ns(lab.hosts[1].ns, "join", h1.endpoint, str(written["agent2"]))
+            world = _in_ns(lab.hosts[0].ns, "listen", h0.endpoint, str(written["world"]), keys.cmd("acl", "*"),
+                           keys.cmd("acl", 2))
+            assert world.stdout.readline().strip() == "subscribed"
+            agent = _in_ns(lab.hosts[1].ns, "put", h1.endpoint, str(written["agent2"]), keys.cmd("acl", 1),
+                           keys.cmd("acl", 2))
+            assert _lines(agent) == ["put"]
+            assert _lines(world) == [f"got {keys.cmd('acl', 2)}"]
+            assert _lines(member) == ["joined"]
+            for s in strangers:
+                (line,) = _lines(s)
+                assert line.startswith("refused"), line
+        finally:
+            procs.stop_all(3.0)

@@ -74,6 +74,10 @@ class Launch:
                 pass
 
 
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_run")
+
+
 @pytest.fixture(scope="module")
 def launches(tmp_path_factory):
     """Start launches; whatever is left of them is killed at the end of the module."""

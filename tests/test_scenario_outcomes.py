@@ -23,6 +23,7 @@ def autocast_run(tmp_path, scenario: str, scheme: str) -> dict:
     return json.loads(lines[-1])
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("scenario", ["overtaking", "left_turn"])
 def test_single_fails_and_autocast_passes_safely(tmp_path, scenario):
     single = autocast_run(tmp_path, scenario, "single")

@@ -290,6 +290,7 @@ def lines(path: Path) -> list[dict]:
     return [json.loads(x) for x in path.read_text().splitlines()]
 
 
+@pytest.mark.heavy
 def test_smoke_sweep_resume_and_report(tmp_path):
     out = tmp_path / "smoke"
     first = autocast("sweep", "--preset", "smoke", "--out", str(out))
@@ -321,6 +322,7 @@ def test_smoke_sweep_resume_and_report(tmp_path):
     assert "has 2 runs, 0 of them not run yet." in summary
 
 
+@pytest.mark.heavy
 def test_a_failed_run_is_recorded_with_its_error(tmp_path):
     """The world hangs at tick 3, so the run cannot reach an outcome however fast the
     machine is; the wall-clock limit only notices. The run is failed, never judged."""

@@ -5,6 +5,7 @@ checked against the run), the JSON mirror, and damaged logs shown as far as they
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import subprocess
@@ -28,6 +29,10 @@ from vehicle_agent.frames import sensor_to_world
 
 RUN = "view5"
 VEHICLES = 5
+
+
+# The module-scoped fixtures below start runs once per worker: keep the module on one.
+pytestmark = pytest.mark.xdist_group("test_view")
 
 
 @pytest.fixture(scope="module")
@@ -377,3 +382,70 @@ def test_a_missing_file_is_refused(tmp_path, capsys):
     assert "no such" in capsys.readouterr().err
     assert export.main([str(tmp_path / "nothing.mcap"), "--foxglove", str(tmp_path / "x.mcap")]) == 2
     assert "no such" in capsys.readouterr().err and not (tmp_path / "x.mcap").exists()
+
+
+def signed_twin(run_mcap, path):
+    """The run's log as a ``--sign`` run records it: every control message, command and
+    report in its vehicle's ``Signed`` envelope, and so every control bundle's messages;
+    in vehicle 1's slot, after its own, a forgery (it 50 m away, signed by vehicle 2) that
+    its receivers heard and dropped, as the proxy relays such frames."""
+    from protocol.messages import AgentReport, Command, ControlMsg, CtrlBundle
+    from protocol.security import Authority, Signer
+
+    authority = Authority(RUN)
+    signers = {v: Signer(authority.issue(v, 0.0, 60.0)) for v in range(VEHICLES)}
+
+    def sealed(msg):
+        return signers[msg.vid].seal(msg)
+
+    with open(path, "wb") as f:
+        out = McapLog(f, {"run_id": RUN})
+        for topic, data, t in raw_messages(run_mcap):
+            msg = decode(data)
+            if isinstance(msg, (ControlMsg, Command, AgentReport)):
+                data = sealed(msg)
+            elif isinstance(msg, CtrlBundle):
+                own = [decode(m) for m in msg.messages]
+                frames = [sealed(m) for m in own]
+                senders, heard = msg.senders, msg.heard
+                if 1 in senders.tolist():
+                    s = senders.tolist().index(1)
+                    pose = dataclasses.replace(own[s].pose, x_m=own[s].pose.x_m + 50.0)
+                    frames.insert(s + 1, signers[2].seal(dataclasses.replace(own[s], pose=pose)))
+                    senders, heard = np.insert(senders, s + 1, 1), np.insert(heard, s + 1, heard[:, s], axis=1)
+                data = encode(dataclasses.replace(msg, senders=senders, heard=heard, messages=frames))
+            out.write(topic, data, t)
+        out.finish()
+    return path
+
+
+def test_a_signed_run_is_shown_as_its_unsigned_twin(run_mcap, fox, tmp_path):
+    """The viewers read a signed run's vehicle messages through their envelopes: the same
+    paths, heard counts and known boxes as the same run unsigned."""
+    import rerun as rr
+
+    twin = signed_twin(run_mcap, tmp_path / "signed.mcap")
+    assert sum(topic.endswith("/cmd") for topic, _, _ in raw_messages(twin)) > 0
+    fox_twin = tmp_path / "signed.foxglove.mcap"
+    assert export.main([str(twin), "--foxglove", str(fox_twin), "--no-json"]) == 0
+    paths = [export.path_topic(v) for v in range(VEHICLES)]
+
+    def on(path) -> list[tuple[str, bytes, int]]:
+        with open(path, "rb") as f:
+            return [(ch.topic, m.data, m.log_time) for _, ch, m in make_reader(f).iter_messages(topics=paths)]
+
+    assert on(fox) and on(fox_twin) == on(fox)
+    rrds = {}
+    for name, path in (("plain", run_mcap), ("signed", twin)):
+        rec = rr.RecordingStream("autocast-test")
+        rrds[name] = tmp_path / f"{name}.rrd"
+        rec.save(rrds[name])
+        stats = build(path, rec)
+        rec.disconnect()
+        assert stats.malformed == 0
+    for v in range(VEHICLES):
+        for entity, column in ((f"/vehicles/{v}/heard", "Scalars:scalars"),
+                               (f"/world/vehicles/{v}/known", "Boxes3D:centers"),
+                               (f"/world/vehicles/{v}/trajectory", "LineStrips3D:strips")):
+            plain = values(rrds["plain"], entity, column)
+            assert plain and values(rrds["signed"], entity, column) == plain, entity

@@ -119,6 +119,7 @@ def test_a_killed_agent_does_not_stall_the_world(procs, hub, tap_on):
     assert list(result["dead_agents"]) == ["2"] and "liveliness" in result["dead_agents"]["2"]
 
 
+@pytest.mark.heavy
 def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
     w = world(procs, hub, "--vehicles", "3", "--duration", "3", "--agent-timeout-s", "3.0")
     tap = tap_on()
@@ -159,6 +160,7 @@ def test_malformed_messages_are_counted_and_dropped(procs, hub, tap_on):
     assert result["ticks"] == 30 and result["dead_agents"] == {}
 
 
+@pytest.mark.heavy
 def test_standalone_world_spawns_agents_and_is_deterministic(procs, hub):
     from tests.conftest import free_port
 
@@ -185,6 +187,7 @@ def test_bad_flags_are_refused_naming_the_field(procs, flags, field):
     assert p.returncode == 2 and f"{field}:" in err
 
 
+@pytest.mark.heavy
 def test_realtime_mode_keeps_the_wall_clock(procs, hub, tap_on):
     w = world(procs, hub, "--vehicles", "2", "--duration", "2", "--realtime")
     tap_on()
@@ -196,6 +199,7 @@ def test_realtime_mode_keeps_the_wall_clock(procs, hub, tap_on):
     assert result["dead_agents"] == {}
 
 
+@pytest.mark.heavy
 def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, hub, tap_on):
     """A stand-in ego answers each scan with its command at once and its fused-view
     report 1 s later. With --ego-reports the world does not step tick 0 before that
@@ -236,6 +240,7 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
     assert 0 in sent and tick_seen[1] >= sent[0]  # tick 1 opened only after tick 0's report
 
 
+@pytest.mark.heavy
 def test_a_world_stopped_mid_run_judges_nothing(procs, hub, tap_on):
     """SIGINT before the scenario has played out: the outcome says where it stopped and
     judges nothing (no deadlock for a run that was cut short), in valid JSON."""

@@ -25,13 +25,15 @@ from channel_proxy.profiles import get_profile
 from protocol import keys
 from protocol.codec import encode
 from protocol.faults import Injector
-from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Scan, Transmission
+from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Rejected, Scan, Transmission
+from protocol.security import Credentials, plain, with_digests
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
 from vehicle_agent.agent import Agent, LaneFollower, timed
 from vehicle_agent.agreement import AgreementConfig, decide, unscheduled_after
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
+from vehicle_agent.guard import Guard
 from vehicle_agent.link import V2VLink
 from vehicle_agent.scheduler import UnknownSchedulerError
 from vehicle_agent.scheduler import get as get_scheduler
@@ -59,6 +61,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--scheduler", default=None,
                     help="schedule with this registered scheduler or package.module:function instead of "
                          "the scheme's own (docs/scheduler.md)")
+    ap.add_argument("--credentials", default=None, metavar="FILE",
+                    help="this vehicle's key and certificate from the run's authority (protocol/security.py): "
+                         "sign what it sends, accept only what verifies (docs/security.md)")
     ap.add_argument("--log-level", default="WARNING")
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -82,6 +87,14 @@ def main(argv: list[str] | None = None) -> int:
         get_scheduler(args.scheduler or SCHEDULER_OF.get(args.scheme, "autocast"))
     except (KeyError, UnknownSchedulerError) as exc:
         print(f"error: {exc.args[0]}", file=sys.stderr)
+        return 2
+    try:
+        args.credentials = Credentials.load(args.credentials) if args.credentials else None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        print(f"error: credentials: {exc}", file=sys.stderr)
+        return 2
+    if args.credentials is not None and args.credentials.vid != args.vid:
+        print(f"error: credentials: issued to vehicle {args.credentials.vid}, not {args.vid}", file=sys.stderr)
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -113,8 +126,9 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         return 2
     link = None if args.scheme in ("single", "lane") else V2VLink(session, run, vid, drops, stop)
     report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
+    guard = Guard(args.credentials, drops) if args.credentials is not None else None
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
-                    report_pub.put if report_pub is not None else None)
+                    report_pub.put if report_pub is not None else None, guard)
     if step.link is not None:  # one line per agent, like agent_timings at exit: what this vehicle runs with
         config = {"vid": vid, "scheme": args.scheme, "scheduler": step.agreement.scheduler,
                   "channel_profile": args.channel_profile}
@@ -126,6 +140,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
     ]
     cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
+    rejected_pub = reliable_publisher(session, keys.rejected(run, vid)) if guard is not None else None
+    published_rejections = 0
     token = session.liveliness().declare_token(keys.alive(run, vid))
     faults = Injector(f"agent{vid}")
     profile_dir = os.environ.get(PROFILE_ENV)
@@ -152,10 +168,15 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                 cmd = Command(scan.tick, scan.t_sim_s, vid, -spec.max_brake_mps2, 0.0)
             finally:
                 faulthandler.cancel_dump_traceback_later()
-            cmd_pub.put(encode(cmd))
+            cmd_pub.put(step.wire(cmd))
+            if guard is not None and guard.rejections.version != published_rejections:  # for the log
+                published_rejections = guard.rejections.version
+                rejected_pub.put(encode(Rejected(scan.tick, scan.t_sim_s, vid, guard.rejections.summary())))
             proc.tick_done()
     finally:
         token.undeclare()
+        if rejected_pub is not None:
+            rejected_pub.undeclare()
         for sub in subs:
             sub.undeclare()
         if link is not None:
@@ -165,6 +186,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
     print(drops.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
+    if guard is not None:
+        print(guard.rejections.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
     print("agent_timings " + json.dumps(step.timing_summary() | proc.summary()), file=sys.stderr, flush=True)
     if profiler is not None:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)
@@ -261,10 +284,14 @@ class Pipeline:
     """One scheme's per-interval step around the Agent's stages."""
 
     def __init__(self, mission: Mission, mapmsg: MapMsg, scheme: str, profile_name: str,
-                 scheduler: str | None = None, link=None, report: Callable[[bytes], object] | None = None) -> None:
+                 scheduler: str | None = None, link=None, report: Callable[[bytes], object] | None = None,
+                 guard: Guard | None = None) -> None:
         """``link``: the V2V channel (a ``V2VLink``; None for ``single`` and ``lane``);
-        ``report``: where the ego's encoded ``AgentReport`` goes (None: not the ego)."""
+        ``report``: where the ego's encoded ``AgentReport`` goes (None: not the ego);
+        ``guard``: sign and verify (None: send plain messages, accept plain ones)."""
         self.mission, self.scheme = mission, scheme
+        self.guard = guard
+        self._sealed: tuple[Command, bytes] | None = None
         self.agent = Agent(mission, mapmsg)
         self.lane_follower = LaneFollower(mission)
         self.link = link
@@ -275,6 +302,18 @@ class Pipeline:
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report = report
         self.timings: dict[str, list[float]] = {}
+
+    def wire(self, cmd: Command) -> bytes:
+        """The command as it goes to the world (sealed during the tick ``run`` made it in)."""
+        got = self._sealed
+        return got[1] if got is not None and got[0] is cmd else self.seal(cmd)
+
+    def seal(self, msg) -> bytes:
+        """``msg`` as this vehicle sends it: signed, or plain."""
+        if self.guard is None:
+            return plain(msg)
+        with timed(self.agent.timings_ms, "security"):
+            return self.guard.seal(msg)
 
     def run(self, scan: Scan) -> Command:
         if self.scheme == "lane":
@@ -294,6 +333,8 @@ class Pipeline:
         fused = agent.fuse(view, payloads)
         plan = agent.plan(view, fused, scan)
         cmd = agent.control(plan, scan)
+        if self.guard is not None:  # within the tick, so that signing counts in its timings
+            self._sealed = (cmd, self.seal(cmd))
         if self.report is not None:
             with timed(agent.timings_ms, "report"):
                 self._report(view, plan, scan)
@@ -308,10 +349,25 @@ class Pipeline:
 
     def _share(self, view, scan: Scan) -> list[bytes]:
         """Control message -> what we heard -> the agreed schedule -> our slots -> what we decoded."""
-        agent, link = self.agent, self.link
+        agent, link, guard = self.agent, self.link, self.guard
         own = agent.control_message(view, scan, self.heard, self.unscheduled)
-        with timed(agent.timings_ms, "link"):
-            heard = link.exchange_control(own)
+        blobs: dict[int, bytes] = {}
+        if guard is None:
+            with timed(agent.timings_ms, "link"):
+                heard = link.exchange_control(own)
+        else:  # the message vouches for every payload we may send, so all are encoded now
+            with timed(agent.timings_ms, "encoding"):
+                blobs = agent.dataplane.payloads(view, own.objects.object_id.tolist())
+            with timed(agent.timings_ms, "security"):
+                own = with_digests(own, blobs)
+                raw = guard.seal(own)
+            with timed(agent.timings_ms, "link"):
+                bundle = link.exchange_control_raw(raw, own.tick)
+            with timed(agent.timings_ms, "security"):
+                heard, check = guard.heard(bundle, own.tick)
+            if heard is None:
+                link.missed_bundles += 1
+                heard = []
         self.heard = sorted(m.vid for m in heard)
         agent.dataplane.neighbors.update(heard)
         with timed(agent.timings_ms, "schedule"):
@@ -319,11 +375,15 @@ class Pipeline:
             slots = plan_transmissions(decision, self.agreement)
             self.unscheduled = unscheduled_after(own, [t.object_id for t in slots])
         with timed(agent.timings_ms, "encoding"):
-            blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
+            if guard is None:
+                blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
             txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]
         with timed(agent.timings_ms, "link"):  # the second exchange adds to the first
             received = link.exchange_data(scan.tick, scan.t_sim_s, txs)
-        return [r.payload for r in received]
+        if guard is None:
+            return [r.payload for r in received]
+        with timed(agent.timings_ms, "security"):
+            return guard.payloads(received, check, bundle)
 
     def _emp(self, scan: Scan) -> np.ndarray | None:
         """Upload our Voronoi segment of the scan; return the relay's segments' points
@@ -352,8 +412,8 @@ class Pipeline:
         shared = self.agent.dataplane.shared_batch.points[:, :2]  # every object's points, object after object
         xy = np.concatenate(own + [shared])
         n_shared = len(shared)
-        self.report(encode(AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32),
-                                               n_shared, plan.braking)))
+        msg = AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32), n_shared, plan.braking)
+        self.report(self.guard.seal(msg) if self.guard is not None else encode(msg))
 
     def timing_summary(self) -> dict[str, float]:
         """The median of every per-tick timing, ms (a stage's wall time, and its CPU

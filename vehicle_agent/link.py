@@ -85,13 +85,17 @@ class V2VLink:
 
     def exchange_control(self, msg: ControlMsg) -> list[ControlMsg]:
         """Broadcast our control message; return the ones we heard this interval."""
-        self._ctrl_pub.put(encode(msg))
-        bundle = self._take(self._ctrl, msg.tick)
-        heard = heard_in(bundle, self.vid, self.drops)
+        heard = heard_in(self.exchange_control_raw(encode(msg), msg.tick), self.vid, self.drops)
         if heard is None:
             self.missed_bundles += 1
             return []
         return heard
+
+    def exchange_control_raw(self, raw: bytes, tick: int) -> CtrlBundle | None:
+        """Broadcast our encoded (or sealed) control message of ``tick``; return the
+        interval's bundle (None if none came: the caller counts it missed)."""
+        self._ctrl_pub.put(raw)
+        return self._take(self._ctrl, tick)
 
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
         """Transmit our scheduled objects; return what we decoded this interval."""

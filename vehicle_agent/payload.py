@@ -57,6 +57,16 @@ def encode_object(obj: ObjectPayload) -> bytes:
     return header + rel_cm.astype("<i2").tobytes()
 
 
+def header_of(payload: bytes) -> tuple[int, int, int] | None:
+    """(sender, object id, tick) from a payload's header; None if it has no valid one."""
+    if len(payload) < HEADER_BYTES or (len(payload) - HEADER_BYTES) % BYTES_PER_POINT:
+        return None
+    head = _HEADER.unpack_from(payload)
+    if head[0] != MAGIC or head[1] != VERSION:
+        return None
+    return head[2], head[3], head[4]
+
+
 def decode_object(payload: bytes) -> ObjectPayload:
     if len(payload) < HEADER_BYTES:
         raise MalformedMessage(f"object payload of {len(payload)} bytes is shorter than its header")

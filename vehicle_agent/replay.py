@@ -105,6 +105,10 @@ class ReplayLink:
         self.missed_bundles += heard is None
         return heard or []
 
+    def exchange_control_raw(self, raw: bytes, tick: int) -> CtrlBundle | None:
+        self.sent["ctrl"][tick] = raw
+        return self._decode(self.ctrl_rx.get(tick), CtrlBundle)
+
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
         self.sent["data"][tick] = encode(DataTx(tick, t_sim_s, self.vid, transmissions))
         mine = received_in(self._decode(self.data_rx.get(tick), DataBundle), self.vid)
@@ -128,9 +132,13 @@ class Replayed:
     stages_ms: dict[str, float]  # each stage's CPU time per tick (the agent's own timings)
 
 
-def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None) -> Replayed:
-    """Replay vehicle ``vid`` over the log and diff its outputs."""
+def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None, credentials: Path | None = None) -> Replayed:
+    """Replay vehicle ``vid`` over the log and diff its outputs; a run that signed needs
+    the vehicle's ``credentials`` (``<run>/credentials/agent<vid>.v2x.json``): Ed25519
+    signatures are deterministic, so the replay signs what the run signed."""
+    from protocol.security import Credentials
     from vehicle_agent.__main__ import SCHEDULER_OF, Pipeline
+    from vehicle_agent.guard import Guard
     from vehicle_agent.warmup import warm_up
 
     run = log.run_id
@@ -140,9 +148,11 @@ def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None) -> Repl
     drops = DropCounter()
     link = None if scheme in ("single", "lane") else ReplayLink(log, vid, drops)
     reports: dict[int, bytes] = {}
+    guard = Guard(Credentials.load(credentials), drops) if credentials is not None else None
     step = Pipeline(mission, mapmsg, scheme, log.metadata.get("channel_profile") or "lte-direct",
                     log.metadata.get("scheduler") or None, link,
-                    (lambda raw: reports.__setitem__(decode(raw).tick, raw)) if mission.role == "ego" else None)
+                    (lambda raw: reports.__setitem__(decode(raw).tick, raw)) if mission.role == "ego" else None,
+                    guard)
     if scheme != "lane":
         warm_up(step.agent, step.agreement)
     cmds: dict[int, bytes] = {}
@@ -153,7 +163,7 @@ def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None) -> Repl
         scan = decode(raw, Scan)
         t_scan = time.process_time() - t0
         cmd = step.run(scan) if profiler is None else profiler.runcall(step.run, scan)
-        cmds[tick] = encode(cmd)
+        cmds[tick] = step.wire(cmd)
         costs.append(time.process_time() - t0)
         decoding.append(t_scan + (link.decode_s - before if link is not None else 0.0))
     sent = dict(link.sent) if link is not None else {}
@@ -191,7 +201,8 @@ def main(argv: Iterable[str] | None = None) -> int:
     bad = 0
     results = []
     for vid in vids:
-        r = replay(log, vid, profiler)
+        creds = path.parent / "credentials" / f"agent{vid}.v2x.json"
+        r = replay(log, vid, profiler, creds if log.metadata.get("signed") == "True" and creds.exists() else None)
         results.append(r)
         bad += bool(r.mismatches)
         verdict = "identical" if not r.mismatches else f"DIFFERENT ({len(r.mismatches)}: {', '.join(r.mismatches[:5])})"

@@ -16,6 +16,7 @@ import sys
 import time
 
 from deploy.procs import ProcessManager, ProcSpec
+from protocol.security import Verifier
 from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 from world_server import lidar
 from world_server.scenarios import ScenarioError, load_scenario_file, params_from_dict
@@ -46,6 +47,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--startup-timeout-s", type=float, default=120.0)
     ap.add_argument("--ego-reports", action="store_true",
                     help="the ego agent reports its fused view every tick: lock-step waits for it from the first tick")
+    ap.add_argument("--authority", default=None, metavar="HEX",
+                    help="the run's authority's Ed25519 public key: accept only commands and reports signed by "
+                         "the vehicle's own certificate (docs/security.md)")
     ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
@@ -88,6 +92,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     run_id = args.run_id or time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
+    try:
+        verifier = Verifier(bytes.fromhex(args.authority), run_id) if args.authority else None
+    except ValueError as exc:
+        print(f"error: authority: {exc}", file=sys.stderr)
+        return 2
     z = zenoh_args_from(args)
     if not z.listen and not z.connect and not z.config_file:
         z = ZenohArgs(listen=(DEFAULT_HUB,))
@@ -96,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
-                             ego_reports=args.ego_reports)
+                             ego_reports=args.ego_reports, verifier=verifier)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":
@@ -109,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.json:
             print(json.dumps(result, allow_nan=False), flush=True)
     print(server.drops.exit_line("world"), file=sys.stderr, flush=True)  # after the session closed: every drop
+    if verifier is not None:
+        print(verifier.rejections.exit_line("world"), file=sys.stderr, flush=True)
     return 0
 
 

@@ -7,6 +7,11 @@ dead at once; an agent whose command for a tick does not arrive within
 ``agent_timeout_s`` of wall time is marked dead too. A dead agent's vehicle gets the
 failsafe (full brake) and the run goes on without it.
 
+Authenticity (``verifier``): with the run's authority key, a command (and the ego's
+report) is accepted only as a ``Signed`` envelope by that vehicle's certificate, of a
+tick newer than the last one accepted from it; anything else is dropped and counted by
+reason (``protocol.security``), and the counts go into the result as ``rejected``.
+
 Modes: lock-step (default) waits, per tick, for every live agent's command: runs are
 deterministic for a seed. Real-time (``realtime=True``) ticks on the wall clock every
 decision interval; an agent whose command is late keeps its last one.
@@ -22,9 +27,10 @@ from dataclasses import dataclass, field
 import zenoh
 
 from protocol import keys
-from protocol.codec import encode
+from protocol.codec import MalformedMessage, encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
+from protocol.security import Verifier
 from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
 from world_server.sim import Simulation
 
@@ -41,8 +47,10 @@ class ServerStats:
 
 class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
-                 agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False) -> None:
+                 agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False,
+                 verifier: Verifier | None = None) -> None:
         self.sim = sim
+        self.verifier = verifier
         self.faults = Injector("world")
         self.session = session
         self.run_id = run_id
@@ -55,6 +63,7 @@ class WorldServer:
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
         self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
+        self._report_tick = -1  # the newest report accepted: with a verifier, an older one is a replay
         # the ego agent reports its fused view: lock-step waits for it. Told so up front
         # (--ego-reports), from the first tick; otherwise once a first report has come,
         # and whether that beat the first command was a race that changed the judged
@@ -86,9 +95,8 @@ class WorldServer:
         self._entities += [
             s.declare_queryable(keys.world_map(run), on_map),
             s.declare_queryable(keys.mission(run, "*"), on_mission),
-            s.declare_subscriber(keys.cmd(run, "*"), typed_handler(Command, self._on_cmd, self.drops)),
-            s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid),
-                                 typed_handler(AgentReport, self._on_report, self.drops)),
+            s.declare_subscriber(keys.cmd(run, "*"), self._handler(Command, self._on_cmd)),
+            s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid), self._handler(AgentReport, self._on_report)),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
         self._tick_pub = reliable_publisher(s, keys.world_tick(run))
@@ -110,18 +118,46 @@ class WorldServer:
                     self._mark_dead(vid, "liveliness token dropped")
             self._cv.notify_all()
 
+    def _handler(self, expected: type, on_msg):
+        """Plain messages through ``typed_handler``; with a verifier, only verified ones."""
+        if self.verifier is None:
+            return typed_handler(expected, on_msg, self.drops)
+
+        def handler(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                msg = self.verifier.open(sample.payload.to_bytes(), expected, keys.vid_of(key), key)
+            except (MalformedMessage, ValueError) as err:
+                self.drops.add(key, err)
+                return
+            if msg is None:
+                return
+            try:
+                on_msg(key, msg)
+            except Exception:
+                log.exception("handler for %s failed", key)
+
+        return handler
+
     def _on_cmd(self, key: str, cmd: Command) -> None:
         if keys.vid_of(key) != cmd.vid:
             self.drops.add(key, ValueError(f"command for vid {cmd.vid} on another vehicle's key"))
             return
         with self._cv:
             prev = self._cmds.get(cmd.vid)
+            if self.verifier is not None and prev is not None and cmd.tick <= prev.tick:
+                self.verifier.rejections.add(key, "replayed", f"vehicle {cmd.vid}, tick {cmd.tick}")
+                return
             if prev is None or cmd.tick >= prev.tick:
                 self._cmds[cmd.vid] = cmd
             self._cv.notify_all()
 
     def _on_report(self, key: str, report: AgentReport) -> None:
         with self._cv:
+            if self.verifier is not None and report.tick <= self._report_tick:
+                self.verifier.rejections.add(key, "replayed", f"report of tick {report.tick}")
+                return
+            self._report_tick = max(self._report_tick, report.tick)
             self._reports[report.tick] = report
             self._ego_reports = True
             self._cv.notify_all()
@@ -237,4 +273,6 @@ class WorldServer:
             "malformed_dropped": self.drops.total,
             "late_commands": self.stats.late_commands,
         })
+        if self.verifier is not None:
+            result["rejected"] = self.verifier.rejections.summary()
         return result

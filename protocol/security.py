@@ -1,0 +1,347 @@
+"""Authenticated V2X messages: the run's authority, certificates, signing and checking.
+
+After IEEE 1609.2, reduced to what a run needs. The run's authority (the launcher)
+holds an Ed25519 key pair and gives each connected vehicle a key pair and a
+``Certificate`` (run id, vehicle id, validity in sim time, public key, the authority's
+signature). A vehicle sends each of its messages as a ``Signed`` envelope: the encoded
+message, its certificate and its signature over a context string and the encoded
+message, which holds the sender's ``vid``, ``tick`` and ``t_sim_s`` (Ed25519 binds the
+signer's public key itself; docs/security.md). A receiver checks, in this order, and
+drops and counts by reason what fails (``Rejections``):
+
+- ``unsigned``: a plain message where a signed one is required;
+- ``bad_certificate``: the certificate is not the run's authority's (or of another run,
+  or outside its validity);
+- ``wrong_key``: a valid certificate, but of another vehicle than the one the message
+  comes from (the key it came on, its slot on the medium) or claims to be;
+- ``bad_signature``: the signature does not verify (the bytes are not what the
+  certificate's holder signed);
+- ``replayed``: authentic, but of an interval already past or already heard from.
+
+Object payloads are not signed one by one: a signed ``ControlMsg`` carries the digest
+of each of its objects' payloads, and a payload is authentic if its sender's signed
+control message of the same interval vouches for it (one signature per sender and
+interval covers both; ``PayloadCheck``). What each check costs is in docs/security.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import DIGEST_BYTES, Certificate, ControlMsg, Signed
+
+log = logging.getLogger(__name__)
+
+MESSAGE_CONTEXT = b"autocast v2x message 1\x00"  # domain separation: a message signature is never a certificate's
+CERTIFICATE_CONTEXT = b"autocast v2x certificate 1\x00"
+REASONS = ("unsigned", "bad_certificate", "wrong_key", "bad_signature", "replayed")
+REJECTED_LINE = "rejected"  # the tag of a process's exit line (Rejections.exit_line)
+MAX_CERTIFICATES = 1024  # certificates remembered as checked; a flood of new ones only costs a check each
+
+
+def payload_digest(payload: bytes) -> bytes:
+    """What a control message vouches for an object payload with: BLAKE2b-128."""
+    return hashlib.blake2b(payload, digest_size=DIGEST_BYTES).digest()
+
+
+def certificate_tbs(run_id: str, vid: int, valid_from_s: float, valid_until_s: float, public_key: bytes) -> bytes:
+    """The bytes the authority signs for a certificate."""
+    return CERTIFICATE_CONTEXT + msgpack.packb([run_id, vid, float(valid_from_s), float(valid_until_s), public_key],
+                                               use_bin_type=True)
+
+
+def _raw_public(key: Ed25519PrivateKey) -> bytes:
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    return key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+
+
+def _raw_private(key: Ed25519PrivateKey) -> bytes:
+    from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption, PrivateFormat
+
+    return key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+
+
+# ---------------------------------------------------------------------------- the authority
+
+
+@dataclass(frozen=True, slots=True)
+class Credentials:
+    """What the authority gives one vehicle: its private key, its certificate and the
+    authority's public key (to check everybody else's certificates)."""
+
+    private_key: bytes  # 32 bytes, raw Ed25519
+    certificate: Certificate
+    authority: bytes  # 32 bytes, the authority's public key
+
+    @property
+    def vid(self) -> int:
+        return self.certificate.vid
+
+    def to_json(self) -> str:
+        return json.dumps({"private_key": self.private_key.hex(), "authority": self.authority.hex(),
+                           "certificate": msgpack.packb(_cert_fields(self.certificate), use_bin_type=True).hex()})
+
+    @staticmethod
+    def from_json(text: str) -> Credentials:
+        d = json.loads(text)
+        fields = msgpack.unpackb(bytes.fromhex(d["certificate"]), raw=False)
+        return Credentials(bytes.fromhex(d["private_key"]), Certificate(*fields), bytes.fromhex(d["authority"]))
+
+    def save(self, path: Path) -> None:
+        """Written readable by its owner only."""
+        path.touch(mode=0o600, exist_ok=False)
+        path.write_text(self.to_json())
+
+    @staticmethod
+    def load(path: str | Path) -> Credentials:
+        return Credentials.from_json(Path(path).read_text())
+
+
+def _cert_fields(c: Certificate) -> list:
+    return [c.run_id, c.vid, c.valid_from_s, c.valid_until_s, c.public_key, c.signature]
+
+
+class Authority:
+    """The run's certificate authority (the launcher): issues each vehicle's credentials."""
+
+    def __init__(self, run_id: str, private_key: bytes | None = None) -> None:
+        self.run_id = run_id
+        self._key = Ed25519PrivateKey.from_private_bytes(private_key) if private_key else Ed25519PrivateKey.generate()
+        self.public_key = _raw_public(self._key)
+
+    def issue(self, vid: int, valid_from_s: float, valid_until_s: float,
+              private_key: bytes | None = None) -> Credentials:
+        """A new key pair for ``vid`` (or the given private key) and its certificate."""
+        key = Ed25519PrivateKey.from_private_bytes(private_key) if private_key else Ed25519PrivateKey.generate()
+        public = _raw_public(key)
+        signature = self._key.sign(certificate_tbs(self.run_id, vid, valid_from_s, valid_until_s, public))
+        cert = Certificate(self.run_id, vid, float(valid_from_s), float(valid_until_s), public, signature)
+        return Credentials(_raw_private(key), cert, self.public_key)
+
+
+class Signer:
+    """Seals one vehicle's messages: ``seal(msg)`` is the encoded ``Signed`` envelope."""
+
+    def __init__(self, credentials: Credentials) -> None:
+        self.credentials = credentials
+        self._key = Ed25519PrivateKey.from_private_bytes(credentials.private_key)
+
+    def signature(self, body: bytes) -> bytes:
+        """This vehicle's signature of an encoded message."""
+        return self._key.sign(MESSAGE_CONTEXT + body)
+
+    def seal(self, msg: Any) -> bytes:
+        body = encode(msg)
+        return encode(Signed(msg.tick, msg.t_sim_s, self.credentials.certificate, body, self.signature(body)))
+
+
+def plain(msg: Any) -> bytes:
+    """What a vehicle that does not sign sends: the message itself."""
+    return encode(msg)
+
+
+# ---------------------------------------------------------------------------- counting
+
+
+@dataclass
+class Rejections:
+    """What a process dropped as not authentic: per stream (a key, or a bundle's items)
+    and reason; the first of each and every 100th are logged."""
+
+    counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _version: int = 0
+
+    def add(self, stream: str, reason: str, detail: str = "") -> None:
+        assert reason in REASONS, reason
+        with self._lock:
+            per = self.counts.setdefault(stream, {})
+            n = per[reason] = per.get(reason, 0) + 1
+            self._version += 1
+        if n == 1 or n % 100 == 0:
+            log.warning("rejected #%d on %s: %s%s", n, stream, reason, f" ({detail})" if detail else "")
+
+    @property
+    def version(self) -> int:
+        """Grows with every rejection: a cheap test of whether anything changed."""
+        return self._version
+
+    def summary(self) -> dict[str, Any]:
+        """``{"total": n, "by_reason": {reason: n}, "by_stream": {stream: {reason: n}}}``."""
+        with self._lock:
+            by_stream = {s: dict(sorted(r.items())) for s, r in sorted(self.counts.items())}
+        by_reason: dict[str, int] = {}
+        for per in by_stream.values():
+            for reason, n in per.items():
+                by_reason[reason] = by_reason.get(reason, 0) + n
+        return {"total": sum(by_reason.values()), "by_reason": dict(sorted(by_reason.items())),
+                "by_stream": by_stream}
+
+    def exit_line(self, process: str) -> str:
+        """``rejected {"process": ..., "total": ..., "by_reason": ..., "by_stream": ...}``,
+        gathered by the launcher into the outcome record (``deploy.procs.exit_records``)."""
+        return f"{REJECTED_LINE} " + json.dumps({"process": process, **self.summary()})
+
+
+# ---------------------------------------------------------------------------- checking
+
+
+class Verifier:
+    """Opens ``Signed`` envelopes from the run's vehicles against the authority's key.
+
+    ``open`` returns the verified, decoded message, or None after counting why not (a
+    payload that is neither a valid envelope nor a plain message of the expected type is
+    malformed, counted by the caller's ``DropCounter`` as before). Thread-safe: the
+    world checks commands on Zenoh's threads.
+    """
+
+    def __init__(self, authority: bytes, run_id: str, rejections: Rejections | None = None) -> None:
+        self.run_id = run_id
+        self.rejections = rejections if rejections is not None else Rejections()
+        self._authority = Ed25519PublicKey.from_public_bytes(authority)
+        self._certs: dict[Certificate, Ed25519PublicKey | None] = {}  # None: checked and refused
+        self._lock = threading.Lock()
+
+    def _key_of(self, cert: Certificate) -> Ed25519PublicKey | None:
+        """The certificate's public key if the authority issued it for this run."""
+        with self._lock:
+            if cert in self._certs:
+                return self._certs[cert]
+        key = None
+        if cert.run_id == self.run_id and len(cert.public_key) == 32:
+            try:
+                self._authority.verify(cert.signature, certificate_tbs(cert.run_id, cert.vid, cert.valid_from_s,
+                                                                       cert.valid_until_s, cert.public_key))
+                key = Ed25519PublicKey.from_public_bytes(cert.public_key)
+            except (InvalidSignature, ValueError):
+                key = None
+        with self._lock:
+            if len(self._certs) >= MAX_CERTIFICATES:
+                self._certs.clear()
+            self._certs[cert] = key
+        return key
+
+    def open(self, raw: bytes, expected: type, sender: int, stream: str,
+             fresh: Callable[[Any], bool] | None = None) -> Any:
+        """The message in ``raw`` if it is a ``Signed`` ``expected`` from vehicle
+        ``sender`` (the key or slot it came on) that ``fresh`` accepts (its interval);
+        else None, counted under ``stream`` by reason. Raises ``MalformedMessage`` for
+        what is neither an envelope nor a plain ``expected``, or whose signed body does
+        not decode."""
+        try:
+            env = decode(raw, Signed)
+        except MalformedMessage:
+            decode(raw, expected)  # raises if it is not even a plain message of the type
+            self.rejections.add(stream, "unsigned")
+            return None
+        cert = env.certificate
+        key = self._key_of(cert)
+        if key is None or not cert.valid_from_s <= env.t_sim_s <= cert.valid_until_s:
+            self.rejections.add(stream, "bad_certificate", f"vehicle {cert.vid}")
+            return None
+        if cert.vid != sender:
+            self.rejections.add(stream, "wrong_key", f"vehicle {cert.vid}'s certificate on vehicle {sender}'s")
+            return None
+        try:
+            key.verify(env.signature, MESSAGE_CONTEXT + env.body)
+        except InvalidSignature:
+            self.rejections.add(stream, "bad_signature", f"vehicle {sender}")
+            return None
+        msg = decode(env.body, expected)
+        if getattr(msg, "vid", sender) != sender:
+            self.rejections.add(stream, "wrong_key", f"vehicle {sender} signed a message of vehicle {msg.vid}")
+            return None
+        if msg.tick != env.tick or msg.t_sim_s != env.t_sim_s:
+            self.rejections.add(stream, "bad_signature", "the envelope's tick is not the signed one")
+            return None
+        if fresh is not None and not fresh(msg):
+            self.rejections.add(stream, "replayed", f"vehicle {sender}, tick {msg.tick}")
+            return None
+        return msg
+
+
+@dataclass
+class PayloadCheck:
+    """Object payloads of one interval against the signed control messages vouching for them.
+
+    ``vouch(msg)`` registers a verified control message (heard, or taken from the
+    interval's bundle only to check payloads). ``check(sender, payload)`` is True if the
+    payload is the one ``sender`` signed for this interval, else counts why not and is
+    False: no control message of the sender (``unsigned``), a header naming another
+    sender (``wrong_key``) or interval (``replayed``), a digest that differs or an object
+    the message does not list (``bad_signature``). A second copy of a payload is what
+    its sender signed (a vehicle may send an object twice in an interval, and fusion
+    keeps one reception per object): it passes.
+    """
+
+    tick: int
+    rejections: Rejections
+    stream: str = "data bundle item"
+    _digests: dict[int, dict[int, bytes]] = field(default_factory=dict)  # sender -> object id -> digest
+
+    def vouch(self, msg: ControlMsg) -> None:
+        """A message whose digests are not one ``DIGEST_BYTES`` row of bytes per object of
+        its map vouches for nothing (the codec checks dtypes, not shapes: a vehicle may
+        sign any shape)."""
+        ids, digests = msg.objects.object_id, msg.digests
+        if msg.vid in self._digests or ids.ndim != 1 or digests.dtype != np.uint8 or \
+                digests.shape != (len(ids), DIGEST_BYTES):
+            return
+        self._digests[msg.vid] = dict(zip(ids.tolist(), (d.tobytes() for d in digests)))
+
+    def vouched(self, sender: int) -> bool:
+        return sender in self._digests
+
+    def check(self, sender: int, payload: bytes, header: tuple[int, int, int] | None) -> bool:
+        """``header``: the payload's (sender, object id, tick), or None if it has none."""
+        digests = self._digests.get(sender)
+        if digests is None:
+            self.rejections.add(self.stream, "unsigned", f"no signed control message of vehicle {sender}")
+            return False
+        if header is None:
+            self.rejections.add(self.stream, "bad_signature", f"vehicle {sender}: not an object payload")
+            return False
+        claimed, oid, tick = header
+        if claimed != sender:
+            self.rejections.add(self.stream, "wrong_key", f"vehicle {claimed}'s object from vehicle {sender}")
+            return False
+        if tick != self.tick:
+            self.rejections.add(self.stream, "replayed", f"vehicle {sender}'s object of tick {tick}")
+            return False
+        if digests.get(oid) != payload_digest(payload):
+            self.rejections.add(self.stream, "bad_signature", f"vehicle {sender}, object {oid}")
+            return False
+        return True
+
+
+def with_digests(msg: ControlMsg, payloads: dict[int, bytes]) -> ControlMsg:
+    """``msg`` vouching for ``payloads`` (object id -> the payload it will send if scheduled)."""
+    rows = [payload_digest(payloads[oid]) for oid in msg.objects.object_id.tolist()]
+    digests = np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(-1, DIGEST_BYTES) if rows else \
+        np.zeros((0, DIGEST_BYTES), dtype=np.uint8)
+    return replace(msg, digests=digests)
+
+
+def opened(msg: Any) -> Any:
+    """A ``Signed`` envelope's body decoded without checking it (for viewers and reports
+    of a finished log); any other message as it is."""
+    if isinstance(msg, Signed):
+        try:
+            return decode(msg.body)
+        except MalformedMessage:
+            return None
+    return msg

@@ -200,7 +200,8 @@ class ProcessCpu:
     receive and decode the scans and bundles too) per tick, from the end of the first
     tick (which may still load code) to the end of the last; the main thread's over the
     same span, to tell the two apart; and, where /proc tells, each thread's by name
-    (``net-0``, ``rx-1``, ...: Zenoh's; ``python``: ours) over the same span."""
+    (``net-0``, ``rx-1``, ...: Zenoh's; the main thread and those Zenoh runs our callbacks
+    in carry the process's name) over the same span."""
 
     def __init__(self) -> None:
         self.ticks = 0
@@ -265,7 +266,7 @@ class ProcessCpu:
         thread's; ``proc_sys_cpu``: the system part of ``proc_cpu``; ``proc_minflt``: minor
         page faults per tick; ``proc_gc_cpu``: the garbage collector's CPU per tick (any
         thread); ``thread_<name>_cpu``: per thread name (the threads that ran
-        at the first tick: Zenoh's ``rx-0``, ``net-0``, ...; ours ``python``), ms per tick,
+        at the first tick: Zenoh's ``rx-0``, ``net-0``, ...; ours the process's name), ms per tick,
         over the same ticks."""
         if self.first is None or self.last is None or self.ticks < 2:
             return {}

@@ -17,7 +17,6 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from protocol.codec import MalformedMessage
 from protocol.messages import Pose
@@ -140,21 +139,11 @@ def decode_objects(payloads: list[bytes]) -> tuple[ObjectBatch, int]:
     ok[whole] = (head["magic"] == MAGIC) & (head["version"] == VERSION)
     head = head[ok[whole]]
     counts = (lengths[ok] - HEADER_BYTES) // BYTES_PER_POINT
-    rel = _bodies(raw, starts[ok] + HEADER_BYTES, counts * BYTES_PER_POINT).view("<i2").reshape(-1, 3)
+    rel = np.frombuffer(b"".join([memoryview(p)[HEADER_BYTES:] for p, good in zip(payloads, ok.tolist()) if good]),
+                        dtype="<i2").reshape(-1, 3)
     centroid = head["centroid"]  # float32, as the header holds it
     points = rel.astype(np.float32) / 100.0 + np.repeat(centroid, counts, axis=0)
     batch = ObjectBatch(head["sender"].astype(np.int64), head["object_id"].astype(np.int64),
                         head["t"].astype(np.float64), head["pose"].astype(np.float64),
                         head["mount"].astype(np.float64), head["velocity"].astype(np.float64), points, counts)
     return batch, len(payloads) - int(ok.sum())
-
-
-@njit(cache=True)
-def _bodies(raw, starts, lengths):
-    """The byte ranges ``starts[k]:starts[k] + lengths[k]`` of ``raw``, one after the other."""
-    out = np.empty(lengths.sum(), dtype=np.uint8)
-    q = 0
-    for k in range(len(starts)):
-        out[q:q + lengths[k]] = raw[starts[k]:starts[k] + lengths[k]]
-        q += lengths[k]
-    return out

@@ -285,8 +285,12 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 # autocast's. How they were measured: docs/experiments.md.
 MODEL_STARTUP_S = {5: 0.95, 10: 1.11, 20: 1.28, 40: 2.12}
 MODEL_TICK_S = {5: 0.0349, 10: 0.0595, 20: 0.118, 40: 0.249}
-MODEL_SCHEME_TICK = {"single": 0.23, "lane": 0.23, "autocast": 1.0, "autocast-fptas": 1.0, "agnostic": 1.0,
-                     "emp": 1.67}
+# A scheme's tick as a multiple of autocast's, by connected vehicles: EMP's relay grows
+# with the square of the vehicles (every segment to every receiver), so its factor does
+# too; 20 and 40 vehicles from a sample of the paper preset (docs/experiments.md).
+MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {
+    "single": {5: 0.23, 10: 0.23, 20: 0.55, 40: 0.36}, "lane": {5: 0.23, 40: 0.23},
+    "emp": {5: 1.67, 10: 1.67, 20: 2.7, 40: 3.7}}
 # A run ends once its outcome is decided, rarely at its time limit. What a sweep's wall
 # time sums is each run's ticks, so the model takes the mean sim time at which judged runs
 # ended, by scenario (the paper preset at 5 and 10 vehicles, 360 runs, all schemes;
@@ -316,7 +320,8 @@ def _interp(table: Mapping[int, float], n: int) -> float:
 def estimate_run_s(key: RunKey) -> float:
     """Wall seconds of one run alone: start-up + ticks x seconds per tick."""
     ticks = min(key.duration_s, TYPICAL_END_S.get(key.scenario, TYPICAL_END_OTHER_S)) / 0.1
-    tick_s = _interp(MODEL_TICK_S, key.vehicles) * MODEL_SCHEME_TICK.get(key.scheme, 1.0)
+    factor = MODEL_SCHEME_TICK.get(key.scheme)
+    tick_s = _interp(MODEL_TICK_S, key.vehicles) * (_interp(factor, key.vehicles) if factor else 1.0)
     return _interp(MODEL_STARTUP_S, key.vehicles) + ticks * tick_s
 
 

@@ -230,7 +230,8 @@ class WorldServer:
             log.error("participant(s) %s never came up within %.0f s; starting without them", ", ".join(missing),
                       self.startup_timeout_s)
         log.info("%d of %d agents up%s; starting", len(self._live), len(self._expected),
-                 f", participants {', '.join(sorted(self._wait_for & self._participants))}" if self._wait_for else "")
+                 f", participants {', '.join(sorted(self._wait_for & self._participants)) or 'none'}" if self._wait_for
+                 else "")
 
     def _one_tick(self, t0: float) -> None:
         sim = self.sim

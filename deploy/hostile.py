@@ -84,7 +84,8 @@ KEY_TYPES: dict[Callable[..., str], type] = {
     keys.net_data_rx: DataBundle, keys.net_stats: ChannelStats, keys.net_emp_up: EmpUpload,
     keys.net_emp_down: EmpBundle, keys.rejected: Rejected,
 }
-NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.everything)  # liveliness tokens and the run's wildcard
+# liveliness tokens and the run's wildcard
+NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.everything)
 MAX_PAYLOAD_BYTES = 4096  # garbage, not load: keep the hub's work small
 MARKER = b"\xc1hostile-peer: last payload"  # 0xc1 is never used by msgpack: garbage like the rest
 

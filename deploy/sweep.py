@@ -283,8 +283,8 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 # teardown (its launcher and N + 3 processes forked from the sweep's warm factory) and
 # seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
 # autocast's. How they were measured: docs/experiments.md.
-MODEL_STARTUP_S = {5: 2.8, 10: 3.1, 20: 3.7, 40: 5.0}
-MODEL_TICK_S = {5: 0.096, 10: 0.168, 20: 0.348, 40: 0.888}
+MODEL_STARTUP_S = {5: 0.95, 10: 1.11, 20: 1.28, 40: 2.12}
+MODEL_TICK_S = {5: 0.0349, 10: 0.0595, 20: 0.118, 40: 0.249}
 MODEL_SCHEME_TICK = {"single": 0.23, "lane": 0.23, "autocast": 1.0, "autocast-fptas": 1.0, "agnostic": 1.0,
                      "emp": 1.67}
 # A run ends once its outcome is decided, rarely at its time limit. What a sweep's wall

@@ -17,9 +17,11 @@ from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent, _mark_cells
 from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.frames import scan_to_world
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
+from vehicle_agent.perception import build_grid, extract_objects
 from vehicle_agent.planning import Obstacle, first_conflict
 from vehicle_agent.scheduler.state import _merge_join
 from vehicle_agent.tracking import registered_velocity
@@ -33,6 +35,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     yaw = float(np.arctan2(d[1], d[0]))
     scan = _as_received(Scan(0, 0.0, m.vid, Pose(x, y, yaw), m.cruise_speed_mps, synthetic_ranges(m.lidar)))
     view = agent.perceive(scan)
+    _warm_merged_perception(agent, scan)
     other = m.vid + 1
     other_msg = _as_received(ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
                                         np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
@@ -56,6 +59,18 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     agent.dataplane.neighbors.last.clear()
     agent.dataplane.received = type(agent.dataplane.received)()
     agent.last_plan = None
+
+
+def _warm_merged_perception(agent: Agent, scan: Scan) -> None:
+    """EMP perceives its scan merged with the relay's points, through the world-point
+    kernels (``build_grid``, ``extract_objects``); every other scheme perceives from the
+    range image. Left out here, the first EMP tick compiled them in every agent at once
+    on a cold cache, past the world's 10 s per-tick timeout: all agents were declared
+    dead. Called directly, so the agent's tracker sees one scan only."""
+    world = scan_to_world(scan, agent.mission.lidar)
+    xy = (scan.pose.x_m, scan.pose.y_m)
+    grid, cell_idx = build_grid(world, xy, agent.dataplane.spec, agent.dataplane.raster)
+    extract_objects(world, grid, cell_idx, xy)
 
 
 def _warm_conflict(agent: Agent) -> None:

@@ -9,7 +9,13 @@ impersonating a peer is not what this tests, surviving garbage is.
 
 Deterministic: the payloads are a function of ``--seed``, the run id and the key;
 "live" is an event (the world's first tick reached us, and the channel proxy's
-liveliness token is up with ``--proxy``), never a sleep. The last payload goes on the
+liveliness token is up with ``--proxy``), never a sleep. Once its payloads are built
+and its subscriptions are up, it holds the liveliness token
+``keys.participant_alive(run, --name)``: a world told ``--wait-for hostile`` plays no
+tick before that, so the first tick the peer sees is tick 0 on any machine.
+``--late-s S`` (fault injection: a slow peer) holds that token back until every
+agent's token and the proxy's are up, the moment a world that did not wait would
+start, and S seconds more. The last payload goes on the
 world's tick key, and a second session of ours subscribed to that key through the hub
 sees it come back: the hub has then routed every payload we sent (it forwards one
 link's messages in order). The first real tick seen after it is reported as
@@ -50,6 +56,7 @@ import queue
 import random
 import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -77,7 +84,8 @@ KEY_TYPES: dict[Callable[..., str], type] = {
     keys.net_data_rx: DataBundle, keys.net_stats: ChannelStats, keys.net_emp_up: EmpUpload,
     keys.net_emp_down: EmpBundle, keys.rejected: Rejected,
 }
-NOT_DATA = (keys.alive, keys.proxy_alive, keys.everything)  # liveliness tokens and the run's wildcard
+# liveliness tokens and the run's wildcard
+NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.everything)
 MAX_PAYLOAD_BYTES = 4096  # garbage, not load: keep the hub's work small
 MARKER = b"\xc1hostile-peer: last payload"  # 0xc1 is never used by msgpack: garbage like the rest
 
@@ -135,8 +143,8 @@ class Forger:
 
     PHANTOM_ID = 9_999_999
 
-    def __init__(self, session: zenoh.Session, run: str, insider: Credentials, victim: int) -> None:
-        self.session, self.run, self.victim = session, run, victim
+    def __init__(self, pubs: dict[str, zenoh.Publisher], run: str, insider: Credentials, victim: int) -> None:
+        self.pubs, self.run, self.victim = pubs, run, victim
         self.insider = Signer(insider)
         self.genuine = Verifier(insider.authority, run)  # to tell the victim's own messages from ours
         self.stranger = Signer(Authority(run).issue(victim, 0.0, 1e9))  # a certificate no run's authority issued
@@ -148,7 +156,6 @@ class Forger:
         self._ctrl: tuple[ControlMsg, bytes] | None = None  # the victim's newest genuine control message, raw
         self._payloads: list[bytes] = []  # the insider's genuine payloads, oldest first
         self._ours: set[bytes] = set()  # the payloads we forged
-        self._pubs: dict[str, zenoh.Publisher] = {}
 
     # -- what the run shows everybody
 
@@ -189,10 +196,7 @@ class Forger:
     def _put(self, key: str, raw: bytes, reason: str, tick: int | None = None) -> None:
         """Send ``raw``; ``tick``: it is a control message the medium will relay in that
         interval's bundle, recorded as ``"<tick>:<sha256>"`` with its reason."""
-        pub = self._pubs.get(key)
-        if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-        pub.put(raw)
+        self.pubs[key].put(raw)
         per = self.forged.setdefault(key, {})
         per[reason] = per.get(reason, 0) + 1
         if tick is not None:
@@ -262,10 +266,6 @@ class Forger:
         return encode_object(ObjectPayload(sender, oid, tick, t_sim_s, Pose(0.0, 0.0, 0.0), 1.9,
                                            np.zeros(3, np.float32), np.zeros(2, np.float32), g))
 
-    def close(self) -> None:
-        for pub in self._pubs.values():
-            pub.undeclare()
-
 
 def _decodes_as(payload: bytes, cls: type) -> bool:
     try:
@@ -328,6 +328,30 @@ class Watch:
             self.on_tick(None)
 
 
+def _late(session: zenoh.Session, run: str, vids: list[int], proxy_up: threading.Event, late_s: float,
+          timeout_s: float) -> bool:
+    """Wait until every agent's liveliness token and the proxy's are up (a world that
+    does not wait for us starts now), then ``late_s`` more: a slow peer, on purpose."""
+    up: set[int] = set()
+    all_up = threading.Event()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            up.add(keys.vid_of(str(sample.key_expr)))
+            if up >= set(vids):
+                all_up.set()
+
+    sub = session.liveliness().declare_subscriber(keys.alive(run, "*"), on_token, history=True)
+    try:
+        if not (all_up.wait(timeout_s) and proxy_up.wait(timeout_s)):
+            return False
+    finally:
+        sub.undeclare()
+    log.warning("fault injection: every agent and the proxy are up; declaring our token %.1f s late", late_s)
+    time.sleep(late_s)  # the fault itself, not a synchronisation: the world's --wait-for is what is tested
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m deploy.hostile", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -342,6 +366,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--insider", default=None, metavar="FILE", help="the compromised vehicle's credentials")
     ap.add_argument("--victim", type=int, default=0, help="the vehicle whose name the forgeries take")
     ap.add_argument("--forge-ticks", type=int, default=8, help="intervals to forge in, from the first one seen")
+    ap.add_argument("--name", default="hostile", help="our participant token's name (the world's --wait-for NAME)")
+    ap.add_argument("--late-s", type=float, default=0.0, metavar="S",
+                    help="fault injection: declare our token only S s after every agent and the proxy are up")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
     args = ap.parse_args(argv)
@@ -360,7 +387,14 @@ def main(argv: list[str] | None = None) -> int:
     watch = Watch()
     z = zenoh_args_from(args)
     with session_scope(z) as session, session_scope(z) as echo:
-        forger = Forger(session, run, Credentials.load(args.insider), args.victim) if args.forge else None
+        # one publisher per key, shared by the garbage and the forger, all declared before we
+        # are ready: a second publisher declared on a key while the first one was sending
+        # lost the first one's payloads (100 of 100 on the insider's control key, once)
+        pubs = {key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK) for key in plan}
+        forger = Forger(pubs, run, Credentials.load(args.insider), args.victim) if args.forge else None
+        if forger is not None and not {args.victim, forger.insider.credentials.vid} <= set(args.vids):
+            log.error("--victim and the insider must be among --vids")
+            return 2
         ticks: queue.SimpleQueue[Tick | None] = queue.SimpleQueue()
         watch.on_tick = ticks.put
         subs = [echo.declare_subscriber(tick_key, watch.on_tick_key),
@@ -377,6 +411,11 @@ def main(argv: list[str] | None = None) -> int:
                 history=True))
         else:
             proxy_up.set()
+        if args.late_s > 0 and not _late(session, run, args.vids, proxy_up, args.late_s, args.timeout_s):
+            log.error("the run's agents never came up")
+            return 1
+        # last, on the session of our subscriptions: the hub has them before the world sees the token
+        subs.append(echo.liveliness().declare_token(keys.participant_alive(run, args.name)))
         if not (watch.live.wait(args.timeout_s) and proxy_up.wait(args.timeout_s)):
             log.error("the run never became live")
             return 1
@@ -389,15 +428,12 @@ def main(argv: list[str] | None = None) -> int:
         for key, payloads in plan.items():  # the tick key last: its last payload is the marker
             if key == tick_key and forging is not None:
                 forging.join()  # every forgery out before the marker
-            pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
             for payload in payloads:
-                pub.put(payload)
-            pub.undeclare()
+                pubs[key].put(payload)
         watch.done.wait(args.timeout_s)
-        for sub in subs:
-            sub.undeclare()
+        for entity in (*subs, *pubs.values()):
+            entity.undeclare()
         if forger is not None:
-            forger.close()
             report.update(forged=forger.forged, frames=forger.frames)
     report.update(first_tick=watch.first_tick, confirmed_before_tick=watch.confirmed_before_tick)
     print("hostile_peer " + json.dumps(report), flush=True)

@@ -131,6 +131,9 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap.add_argument("--scans", default="ego", help="LiDAR scans the recorder keeps: ego (default) | all | none")
     ap.add_argument("--agent-timeout-s", default="10", help="wall time an agent may take for a tick before "
                     "the world declares it dead (default 10)")
+    ap.add_argument("--wait-for", nargs="+", default=[], metavar="NAME",
+                    help="the world waits before tick 0 for each named participant's liveliness token "
+                         "ac/<run>/alive/p/NAME too: a process of your own that must see the run from its start")
     ap.add_argument("--timeout-s", default="900", help="wall-clock limit for the whole run (default 900)")
     ap.add_argument("--no-warm-up", action="store_true", help="skip warming the numba caches")
     ap.add_argument("--log-level", default="INFO", help="the launcher's, world's, proxy's and recorder's")
@@ -183,6 +186,12 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
         keys.everything(run_id)
     except ValueError as exc:
         raise InputError(f"run_id: {exc}") from None
+    wait_for = tuple(args.wait_for)
+    try:
+        for name in wait_for:
+            keys.participant_alive(run_id, name)
+    except ValueError as exc:
+        raise InputError(f"wait_for: {exc}") from None
     run_dir = Path(args.out) / run_id
     if run_dir.exists():
         raise InputError(f"run_id: {run_dir} already exists")
@@ -193,7 +202,8 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
         raise InputError(str(exc)) from None
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
                           agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
-                          channel_profile=profile, signing=args.sign, lock_down=args.lock_down)
+                          channel_profile=profile, signing=args.sign, lock_down=args.lock_down,
+                          wait_for=wait_for)
     return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
 
 

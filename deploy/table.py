@@ -43,6 +43,7 @@ class RunConfig:
     signing: bool = False  # V2X messages signed and verified (docs/security.md)
     authority: str = ""  # the run's authority's public key (hex) once credentials are issued (deploy.credentials)
     lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.credentials)
+    wait_for: tuple[str, ...] = ()  # participants besides the table's whose token the world waits for before tick 0
 
     @property
     def mcap_path(self) -> Path:
@@ -124,6 +125,8 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
         flags.append("--ego-reports")
     if cfg.signing:
         flags += ["--authority", _authority(cfg)]
+    if cfg.wait_for:
+        flags += ["--wait-for", *cfg.wait_for]
     return tuple(flags)
 
 

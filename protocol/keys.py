@@ -116,6 +116,15 @@ def proxy_alive(run: str) -> str:
     return f"{_run(run)}/alive/proxy"
 
 
+def participant_alive(run: str, name: str) -> str:
+    """Liveliness token of a participant the world was told to wait for (``--wait-for
+    NAME``): any process of a run besides the agents and the proxy (a test's peer, a
+    user's logger), declared once it is ready for tick 0."""
+    if name != "*" and not _RUN_ID.match(name):
+        raise ValueError(f"participant name {name!r}: use letters, digits, '-' and '_' only")
+    return f"{_run(run)}/alive/p/{name}"
+
+
 def everything(run: str) -> str:
     """All of a run's keys, for the recorder."""
     return f"{_run(run)}/**"

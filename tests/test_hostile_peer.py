@@ -6,7 +6,9 @@ forged object payloads, replays of earlier genuine messages. A real signed run
 (launcher, recorder, world, proxy, agents as processes) plays out in lock-step. The
 run must end judged exactly as without the peer, no process may die, each process's
 malformed counter must equal, key by key, the garbage the peer sent on its keys, and
-every forgery must be rejected, for its reason, by every process it reached."""
+every forgery must be rejected, for its reason, by every process it reached. The peer
+is slow on purpose (``--late-s``: it gets ready only after every agent and the proxy
+are up): the world, told ``--wait-for hostile``, starts only once it is ready."""
 
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ from vehicle_agent.guard import CTRL_STREAM, DATA_STREAM
 FLAGS = ("--scenario", "left_turn", "--vehicles", "3", "--scheme", "autocast", "--duration", "2.5", "--seed", "2",
          "--sign")
 UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped", "rejected")
+LATE_S = "2.0"  # the peer's injected delay past the moment a world that did not wait for it would start
 INSIDER, VICTIM = 1, 0  # the compromised vehicle (the occluder truck: it sends objects), the one it claims to be (the ego)
 
 
@@ -50,13 +53,14 @@ def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, in
     opts = replace(opts, run=prepare(opts.run))
     with ExitStack() as stack:
         session, endpoint = open_hub(stack, opts.run.run_dir)
-        cfg = replace(opts.run, hub=endpoint)
+        cfg = replace(opts.run, hub=endpoint, wait_for=("hostile",) if hostile else ())
         specs = table.processes(cfg)
         if hostile:
             vids = [str(v) for v in table.connected_vids(cfg.params)]
             specs.append(ProcSpec("hostile", "deploy.hostile", (
                 "--run-id", run_id, "--connect", endpoint, "--vids", *vids, "--proxy", "--forge", "--insider",
-                str(table.v2x_credentials_path(cfg, INSIDER)), "--victim", str(VICTIM))))
+                str(table.v2x_credentials_path(cfg, INSIDER)), "--victim", str(VICTIM), "--name", "hostile",
+                "--late-s", LATE_S)))
         launcher = Launcher(replace(opts, run=cfg), session, threading.Event(), specs=specs)
         result = launcher.run()
     return result, {name: proc.returncode for name, (_, proc) in launcher.procs.procs.items()}
@@ -105,6 +109,19 @@ def test_the_run_ends_judged_as_without_the_hostile_peer_and_nobody_dies(runs):
         assert set(exits.values()) <= {0, -signal.SIGINT}, exits
     assert all(r["total"] == 0 for r in calm.result["malformed"].values()), calm.result["malformed"]
     assert all(r["total"] == 0 for r in calm.result["rejected"].values()), calm.result["rejected"]
+
+
+def test_the_world_waited_for_the_late_peer(runs):
+    """The peer got ready only after the run's agents and proxy (and LATE_S more): the
+    world, told --wait-for hostile, played no tick before, so the peer saw tick 0 and
+    forged from there (what it forged landed: the tests below)."""
+    _, (hostile, _) = runs
+    logs = Path(hostile.result["run_dir"]) / "logs"
+    assert "fault injection: every agent and the proxy are up" in (logs / "hostile.log").read_text()
+    assert "3 of 3 agents up, participants hostile; starting" in (logs / "world.log").read_text()
+    peer = _peer_report(Path(hostile.result["run_dir"]))
+    assert peer["first_tick"] == 0, peer["first_tick"]
+    assert sum(n for per in peer["forged"].values() for n in per.values()) > 0
 
 
 def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(runs):

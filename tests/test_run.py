@@ -14,7 +14,9 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+from deploy import table
 from deploy.run import main as run_main
+from deploy.run import options_from, parse_args
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Outcome, Scan, Tick
@@ -269,11 +271,20 @@ def test_a_run_cut_short_by_the_wall_clock_limit_is_failed_not_judged(launches):
                                           (["--scheduler", "no_such_pkg:f"], "scheduler"),
                                           (["--scheme", "single", "--scheduler", "greedy"], "scheduler"),
                                           (["--channel-profile", "5g-magic"], "channel_profile"),
-                                          (["--scheme", "emp", "--channel-profile", "dsrc"], "channel_profile")])
+                                          (["--scheme", "emp", "--channel-profile", "dsrc"], "channel_profile"),
+                                          (["--wait-for", "a/b"], "wait_for")])
 def test_a_bad_flag_is_refused_naming_the_field(tmp_path, capsys, flags, field):
     assert run_main(["--out", str(tmp_path), *flags]) == 2
     assert f"error: {field}: " in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []  # nothing was started, nothing written
+
+
+def test_wait_for_reaches_the_world_and_only_the_world():
+    opts = options_from(parse_args(["--run-id", "w", "--wait-for", "logger", "peer"]), hub="tcp/127.0.0.1:1")
+    assert opts.run.wait_for == ("logger", "peer")
+    world = table.world_args(opts.run)
+    assert world[world.index("--wait-for"):][:3] == ("--wait-for", "logger", "peer")
+    assert not any("--wait-for" in spec.args for spec in table.processes(opts.run) if spec.name != table.WORLD)
 
 
 def test_the_cli_refuses_a_bad_flag_before_starting_anything(tmp_path):

@@ -241,6 +241,42 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
 
 
 @pytest.mark.heavy
+def test_told_to_wait_for_a_participant_the_world_plays_no_tick_before_its_token(procs, hub, tap_on):
+    """--wait-for peer: both agents up is not enough; tick 0 comes only once the
+    participant's token does. The token is declared a second after both agents' tokens
+    were seen (a world that did not wait would tick in that second, and fail the test)."""
+    w = world(procs, hub, "--vehicles", "2", "--duration", "0.5", "--wait-for", "peer")
+    for vid in (0, 1):
+        agent(procs, hub, vid)
+    session = tap_on().session
+    up: set[int] = set()
+    agents_up, ticked = threading.Event(), threading.Event()
+
+    def on_agent(sample):
+        up.add(keys.vid_of(str(sample.key_expr)))
+        if up == {0, 1}:
+            agents_up.set()
+
+    entities = [session.liveliness().declare_subscriber(keys.alive(RUN, "*"), on_agent, history=True),
+                session.declare_subscriber(keys.world_tick(RUN), lambda s: ticked.set())]
+    try:
+        assert agents_up.wait(60.0), "the agents never came up"
+        assert not ticked.wait(1.0), "the world ticked before the participant was up"
+        entities.append(session.liveliness().declare_token(keys.participant_alive(RUN, "peer")))
+        result = outcome_of(w)
+    finally:
+        for entity in entities:
+            entity.undeclare()
+    assert ticked.is_set() and result["ticks"] == 5 and result["dead_agents"] == {}
+
+
+def test_a_bad_participant_name_is_refused(procs):
+    w = procs("world_server", "--run-id", RUN, "--wait-for", "a/b")
+    _, err = w.communicate(timeout=60)
+    assert w.returncode == 2 and "wait_for" in err
+
+
+@pytest.mark.heavy
 def test_a_world_stopped_mid_run_judges_nothing(procs, hub, tap_on):
     """SIGINT before the scenario has played out: the outcome says where it stopped and
     judges nothing (no deadlock for a run that was cut short), in valid JSON."""

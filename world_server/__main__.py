@@ -16,6 +16,7 @@ import sys
 import time
 
 from deploy.procs import ProcessManager, ProcSpec
+from protocol import keys
 from protocol.security import Verifier
 from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 from world_server import lidar
@@ -47,6 +48,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--startup-timeout-s", type=float, default=120.0)
     ap.add_argument("--ego-reports", action="store_true",
                     help="the ego agent reports its fused view every tick: lock-step waits for it from the first tick")
+    ap.add_argument("--wait-for", nargs="+", default=[], metavar="NAME",
+                    help="also wait, before tick 0, for each named participant's liveliness token "
+                         "ac/<run>/alive/p/NAME (a process that must see the run from its first tick)")
     ap.add_argument("--authority", default=None, metavar="HEX",
                     help="the run's authority's Ed25519 public key: accept only commands and reports signed by "
                          "the vehicle's own certificate (docs/security.md)")
@@ -93,6 +97,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     run_id = args.run_id or time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
     try:
+        for name in args.wait_for:
+            keys.participant_alive(run_id, name)
+    except ValueError as exc:
+        print(f"error: wait_for: {exc}", file=sys.stderr)
+        return 2
+    try:
         verifier = Verifier(bytes.fromhex(args.authority), run_id) if args.authority else None
     except ValueError as exc:
         print(f"error: authority: {exc}", file=sys.stderr)
@@ -105,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
-                             ego_reports=args.ego_reports, verifier=verifier)
+                             ego_reports=args.ego_reports, verifier=verifier, wait_for=tuple(args.wait_for))
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":

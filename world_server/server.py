@@ -7,6 +7,11 @@ dead at once; an agent whose command for a tick does not arrive within
 ``agent_timeout_s`` of wall time is marked dead too. A dead agent's vehicle gets the
 failsafe (full brake) and the run goes on without it.
 
+Start: tick 0 is not played before every connected agent's token is up (or
+``startup_timeout_s`` passed) and every participant named in ``wait_for`` holds its
+token ``keys.participant_alive``: a process that is not an agent but must see the run
+from tick 0 (a test's hostile peer) says so, whatever the machine's speed.
+
 Authenticity (``verifier``): with the run's authority key, a command (and the ego's
 report) is accepted only as a ``Signed`` envelope by that vehicle's certificate, of a
 tick newer than the last one accepted from it; anything else is dropped and counted by
@@ -48,7 +53,7 @@ class ServerStats:
 class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
                  agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False,
-                 verifier: Verifier | None = None) -> None:
+                 verifier: Verifier | None = None, wait_for: tuple[str, ...] = ()) -> None:
         self.sim = sim
         self.verifier = verifier
         self.faults = Injector("world")
@@ -71,6 +76,8 @@ class WorldServer:
         self._ego_reports = ego_reports
         self._expected = set(sim.connected_vids)
         self._live = set(self._expected)
+        self._wait_for = frozenset(wait_for)
+        self._participants: set[str] = set()  # the named participants whose token is up
         self._stopping = threading.Event()
         self._entities: list = []
 
@@ -99,6 +106,9 @@ class WorldServer:
             s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid), self._handler(AgentReport, self._on_report)),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
+        if self._wait_for:
+            self._entities.append(s.liveliness().declare_subscriber(keys.participant_alive(run, "*"),
+                                                                    self._on_participant, history=True))
         self._tick_pub = reliable_publisher(s, keys.world_tick(run))
         self._truth_pub = reliable_publisher(s, keys.world_truth(run))
         self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
@@ -116,6 +126,15 @@ class WorldServer:
                 self._tokens.discard(vid)
                 if vid in self._live:
                     self._mark_dead(vid, "liveliness token dropped")
+            self._cv.notify_all()
+
+    def _on_participant(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._participants.add(name)
+            else:
+                self._participants.discard(name)
             self._cv.notify_all()
 
     def _handler(self, expected: type, on_msg):
@@ -198,14 +217,21 @@ class WorldServer:
     def _wait_for_agents(self) -> None:
         deadline = time.monotonic() + self.startup_timeout_s
         with self._cv:
-            while not self._expected <= self._tokens and not self._stopping.is_set():
+            while not (self._expected <= self._tokens and self._wait_for <= self._participants) \
+                    and not self._stopping.is_set():
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 self._cv.wait(min(left, 0.5))
             for vid in sorted(self._expected - self._tokens):
                 self._mark_dead(vid, f"never came up within {self.startup_timeout_s:.0f} s")
-        log.info("%d of %d agents up; starting", len(self._live), len(self._expected))
+            missing = sorted(self._wait_for - self._participants)
+        if missing:
+            log.error("participant(s) %s never came up within %.0f s; starting without them", ", ".join(missing),
+                      self.startup_timeout_s)
+        log.info("%d of %d agents up%s; starting", len(self._live), len(self._expected),
+                 f", participants {', '.join(sorted(self._wait_for & self._participants)) or 'none'}" if self._wait_for
+                 else "")
 
     def _one_tick(self, t0: float) -> None:
         sim = self.sim

@@ -178,19 +178,25 @@ class DropCounter:
             log.warning("dropped malformed payload #%d on %s: %s", n, key, err)
 
 
-def typed_handler(expected: type, on_msg: Callable[[str, Any], None],
-                  drops: DropCounter) -> Callable[[zenoh.Sample], None]:
+def typed_handler(expected: type, on_msg: Callable[[str, Any], None], drops: DropCounter,
+                  read: Callable[[bytes, str], Any] | None = None) -> Callable[[zenoh.Sample], None]:
     """A subscriber callback that decodes ``expected`` and drops (and counts) the rest.
 
-    Any exception in ``on_msg`` is logged, never propagated into Zenoh's thread.
+    ``read(payload, key)`` replaces the plain decode (a signed run opens and verifies the
+    envelope): it raises ``ValueError`` for a malformed payload, counted here, or returns
+    None for one it refused and counted itself. Any exception in ``on_msg`` is logged,
+    never propagated into Zenoh's thread.
     """
 
     def handler(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
-            msg = decode(sample.payload.to_bytes(), expected)
-        except MalformedMessage as err:
+            payload = sample.payload.to_bytes()
+            msg = decode(payload, expected) if read is None else read(payload, key)
+        except ValueError as err:  # MalformedMessage is one
             drops.add(key, err)
+            return
+        if msg is None:
             return
         try:
             on_msg(key, msg)

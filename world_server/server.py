@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from protocol import keys
-from protocol.codec import MalformedMessage, encode
+from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
 from protocol.security import Verifier
@@ -139,24 +139,11 @@ class WorldServer:
 
     def _handler(self, expected: type, on_msg):
         """Plain messages through ``typed_handler``; with a verifier, only verified ones."""
-        if self.verifier is None:
+        verifier = self.verifier
+        if verifier is None:
             return typed_handler(expected, on_msg, self.drops)
-
-        def handler(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
-            try:
-                msg = self.verifier.open(sample.payload.to_bytes(), expected, keys.vid_of(key), key)
-            except (MalformedMessage, ValueError) as err:
-                self.drops.add(key, err)
-                return
-            if msg is None:
-                return
-            try:
-                on_msg(key, msg)
-            except Exception:
-                log.exception("handler for %s failed", key)
-
-        return handler
+        return typed_handler(expected, on_msg, self.drops,
+                             lambda payload, key: verifier.open(payload, expected, keys.vid_of(key), key))
 
     def _on_cmd(self, key: str, cmd: Command) -> None:
         if keys.vid_of(key) != cmd.vid:

@@ -352,6 +352,20 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
 
 
 @njit(cache=True)
+def _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
+    """(x, y) inside ``box`` (the bodies' bounding box) and on one of the bodies: the
+    per-point test of ``_mark_mine`` and ``_mark_mine_placed``."""
+    if not (x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]):
+        return False
+    for i in range(len(px)):
+        dx, dy = x - px[i], y - py[i]
+        c, s = cos_yaw[i], sin_yaw[i]
+        if abs(c * dx + s * dy) <= half_length and abs(-s * dx + c * dy) <= half_width:
+            return True
+    return False
+
+
+@njit(cache=True)
 def _mark_mine(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length, half_width, box, mine, hits):
     """``_on_bodies`` of every point where it is placed and where it was captured (its
     object's ``shift`` back), in one pass: sets ``mine`` and counts each object's
@@ -359,22 +373,10 @@ def _mark_mine(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length, half_w
     p = 0
     for k in range(len(counts)):
         for _ in range(counts[k]):
-            on = False
-            for back in range(2):
-                x, y = pts[p, 0], pts[p, 1]
-                if back == 1:
-                    x, y = x - shift[k, 0], y - shift[k, 1]
-                if not (x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]):
-                    continue
-                for i in range(len(px)):
-                    dx, dy = x - px[i], y - py[i]
-                    c, s = cos_yaw[i], sin_yaw[i]
-                    if abs(c * dx + s * dy) <= half_length and abs(-s * dx + c * dy) <= half_width:
-                        on = True
-                        break
-                if on:
-                    break
-            if on:
+            x, y = pts[p, 0], pts[p, 1]
+            x0, y0 = x - shift[k, 0], y - shift[k, 1]  # where it was captured
+            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box) or \
+                    _on_a_body(x0, y0, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
                 mine[p] = True
                 hits[k] += 1.0
             p += 1
@@ -440,22 +442,9 @@ def _mark_mine_placed(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length,
         sx, sy = shift[k, 0], shift[k, 1]
         n_hits = 0
         for p in range(start, start + counts[k]):
-            on = False
-            for back in range(2):
-                x, y = pts[p, 0] + sx, pts[p, 1] + sy
-                if back == 1:
-                    x, y = x - sx, y - sy
-                if not (x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]):
-                    continue
-                for i in range(len(px)):
-                    dx, dy = x - px[i], y - py[i]
-                    c, s = cos_yaw[i], sin_yaw[i]
-                    if abs(c * dx + s * dy) <= half_length and abs(-s * dx + c * dy) <= half_width:
-                        on = True
-                        break
-                if on:
-                    break
-            if on:
+            x, y = pts[p, 0] + sx, pts[p, 1] + sy
+            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box) or \
+                    _on_a_body(x - sx, y - sy, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
                 mine[p] = True
                 n_hits += 1
         hits[k] = n_hits

@@ -533,8 +533,10 @@ def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -
         print(f"run {'interrupted' if res.exit_code == EXIT_INTERRUPTED else 'failed'}: {res.failure}",
               file=sys.stderr)
     record = json_ready(record)
-    if cfg.run_dir.is_dir():
-        (cfg.run_dir / "outcome.json").write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
+    if cfg.run_dir.is_dir():  # whole or not at all: a sweep, a cluster worker or a test may be polling for it
+        part = cfg.run_dir / "outcome.json.part"
+        part.write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
+        os.replace(part, cfg.run_dir / "outcome.json")
     if as_json:
         print(json.dumps(record, allow_nan=False), flush=True)
     return res.exit_code

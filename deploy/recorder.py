@@ -15,8 +15,16 @@ With ``--json-mirror`` every valid message is also written decoded, as JSON with
 know nothing of msgpack show it (big point arrays are left out there, see
 ``JSON_OMITTED``). ``mirror_file`` adds the same mirror to a finished recording.
 
-The file is always finalized (summary and index written): on SIGINT or SIGTERM, a short
-drain after the world's outcome, or when the hub has been gone for a few seconds.
+The file is always finalized (summary and index written): on SIGINT or SIGTERM, after
+the world's outcome once the run's processes have gone, or when the hub has been gone
+for a few seconds.
+
+After the outcome it keeps recording until every liveliness token of the run (agents,
+proxy, participants: ``ac/<run>/alive/**``) has dropped and nothing more arrived for
+``SETTLE_S``, or at most ``drain_s``. In lock-step everything a process sends before the
+outcome is causally ahead of it, so the wait is for whatever a free-running process
+still sends on its way out; the settle covers a token drop overtaking its owner's last
+data (Zenoh sends declarations at a higher priority than data).
 """
 
 from __future__ import annotations
@@ -61,6 +69,8 @@ STATS_NAME = "autocast.recorder"
 SCAN_CHOICES = ("ego", "all", "none")
 EGO_VID = 0
 MAX_PUBLISH_S = 1.8e10  # below 2^64 ns
+DRAIN_S = 2.0  # after the outcome, wait at most this long for the run's processes to go
+SETTLE_S = 0.05  # after the outcome and the last token's drop, finish once nothing arrived for this long
 
 JSON_PREFIX = "json/"  # a mirror's topic is JSON_PREFIX + the key
 JSON_ENCODING = "json"
@@ -81,7 +91,7 @@ class RecorderConfig:
     scans: str = "ego"
     metadata: dict[str, str] = field(default_factory=dict)
     compression: str = "zstd"
-    drain_s: float = 0.5  # keep recording this long after the outcome
+    drain_s: float = DRAIN_S
     hub_lost_s: float = 3.0  # finalize when no hub was connected for this long
     json_mirror: bool = False  # also write every message as JSON on json/<key>
 
@@ -148,7 +158,7 @@ def subscriptions(run: str, scans: str) -> list[str]:
     """
     if scans == "all":
         return [keys.everything(run)]
-    skip = {keys.everything(run), keys.scan(run, "*")}
+    skip = {keys.everything(run), keys.alive_any(run), keys.scan(run, "*")}
     out = {keys.scan(run, EGO_VID)} if scans == "ego" else set()
     for name, fn in inspect.getmembers(keys, inspect.isfunction):
         params = list(inspect.signature(fn).parameters)
@@ -367,6 +377,8 @@ class Recorder:
         self._lock = threading.Lock()
         self._outcome_at: float | None = None
         self._first_tick: bytes | None = None
+        self._live: set[str] = set()  # the run's liveliness tokens (agents, proxy, participants)
+        self._last_event = time.monotonic()  # the latest sample or token change
         self._outcome_key = keys.world_outcome(cfg.run_id)
         self._tick_key = keys.world_tick(cfg.run_id)
 
@@ -375,29 +387,54 @@ class Recorder:
         payload = sample.payload.to_bytes()
         self._inbox.put((key, payload, time.time_ns()))
         with self._lock:  # only a real outcome or tick counts: anybody can put garbage on their keys
+            self._last_event = time.monotonic()
             if key == self._outcome_key and self._outcome_at is None and _is_a(payload, Outcome):
                 self._outcome_at = time.monotonic()
             if key == self._tick_key and self._first_tick is None and _is_a(payload, Tick):
                 self._first_tick = payload
 
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._live.add(str(sample.key_expr))
+            else:
+                self._live.discard(str(sample.key_expr))
+            self._last_event = time.monotonic()
+
+    def _done_after(self, outcome_at: float, now: float) -> bool:
+        """After the outcome: the run's processes have gone and nothing arrived since, or
+        the longest wait has passed."""
+        with self._lock:
+            settled = not self._live and now - self._last_event >= SETTLE_S
+        return settled or now - outcome_at >= self.cfg.drain_s
+
     def run(self, out: McapLog) -> None:
         """Record until stopped, the outcome has drained, or the hub is gone."""
         exprs = subscriptions(self.cfg.run_id, self.cfg.scans)
-        subs = [self.session.declare_subscriber(expr, self._on_sample) for expr in exprs]
+        subs = [self.session.liveliness().declare_subscriber(keys.alive_any(self.cfg.run_id), self._on_token,
+                                                             history=True)]
+        subs += [self.session.declare_subscriber(expr, self._on_sample) for expr in exprs]
         log.info("recording into %s: %s", self.cfg.path, " ".join(exprs))
         fetcher: threading.Thread | None = None
         hub_seen = last_check = time.monotonic()
         try:
+            outcome_at = None
             while not self.stop.is_set():
-                self._drain(out, timeout_s=0.2)
+                self._drain(out, timeout_s=0.2 if outcome_at is None else SETTLE_S / 2)
                 now = time.monotonic()
                 with self._lock:
                     outcome_at, first_tick = self._outcome_at, self._first_tick
                 if fetcher is None and first_tick is not None:
                     fetcher = threading.Thread(target=self._fetch_static, args=(first_tick,), daemon=True)
                     fetcher.start()
-                if outcome_at is not None and now - outcome_at >= self.cfg.drain_s:
-                    log.info("outcome recorded; finishing")
+                if outcome_at is not None and self._done_after(outcome_at, now):
+                    with self._lock:
+                        left = sorted(self._live)
+                    if left:
+                        log.warning("outcome recorded; %.1f s later still alive: %s; finishing", now - outcome_at,
+                                    " ".join(left))
+                    else:
+                        log.info("outcome recorded and the run's processes gone (%.2f s); finishing", now - outcome_at)
                     break
                 if now - last_check >= 0.5:
                     last_check = now
@@ -448,7 +485,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
                     help=f"an entry of the '{METADATA_NAME}' metadata record (scenario, seed, scheme, ...)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
-    ap.add_argument("--drain-s", type=float, default=0.5, help="keep recording this long after the outcome")
+    ap.add_argument("--drain-s", type=float, default=DRAIN_S,
+                    help="after the outcome, wait at most this long for the run's processes to go (default %(default)s)")
     ap.add_argument("--json-mirror", action="store_true",
                     help="also write every message as JSON (jsonschema) on json/<key>, for Foxglove")
     ap.add_argument("--log-level", default="INFO")

@@ -125,6 +125,11 @@ def participant_alive(run: str, name: str) -> str:
     return f"{_run(run)}/alive/p/{name}"
 
 
+def alive_any(run: str) -> str:
+    """Every liveliness token of a run: agents, the proxy, participants."""
+    return f"{_run(run)}/alive/**"
+
+
 def everything(run: str) -> str:
     """All of a run's keys, for the recorder."""
     return f"{_run(run)}/**"

@@ -184,6 +184,41 @@ def test_the_outcome_ends_the_recording(recorder):
                                keys.world_outcome(RUN): 1}  # vehicle 1's scan is not kept
 
 
+@pytest.mark.parametrize("recorder", [("--drain-s", "600")], indirect=True)
+def test_the_recording_ends_when_the_last_token_drops_not_at_the_cap(recorder):
+    """After the outcome, the drop of the run's last liveliness token ends the recording,
+    long before the 600 s cap (the wait below is only a safety net). That a live token
+    holds it open is the next test's."""
+    p, h, path = recorder
+    token = h.session.liveliness().declare_token(keys.alive(RUN, 3))
+    h.publish_ticks(2)
+    h.put(keys.world_outcome(RUN), encode(Outcome(2, 0.2, {"outcome": "safe"})))
+    token.undeclare()
+    assert p.wait(timeout=120) == 0
+    assert topics_in(path)[keys.world_outcome(RUN)] == 1
+
+
+def test_the_recording_ends_once_the_tokens_are_gone_and_the_run_is_quiet():
+    """The rule, with the clock passed in: every token gone and nothing new for
+    ``SETTLE_S``; or the cap."""
+    from types import SimpleNamespace
+
+    from deploy.recorder import SETTLE_S, Recorder, RecorderConfig
+
+    rec = Recorder(RecorderConfig(RUN, None, drain_s=2.0), None, None)
+    token = lambda kind, vid: SimpleNamespace(kind=kind, key_expr=keys.alive(RUN, vid))  # noqa: E731
+    rec._on_token(token(zenoh.SampleKind.PUT, 1))
+    rec._on_token(token(zenoh.SampleKind.PUT, 2))
+    rec._on_token(token(zenoh.SampleKind.DELETE, 1))
+    t = rec._last_event
+    assert not rec._done_after(t, t + 1.0)  # vehicle 2 is still up
+    assert rec._done_after(t, t + 2.0)  # the cap
+    rec._on_token(token(zenoh.SampleKind.DELETE, 2))
+    t = rec._last_event
+    assert not rec._done_after(t, t + SETTLE_S / 2)  # gone, but not yet quiet
+    assert rec._done_after(t, t + SETTLE_S)
+
+
 @pytest.mark.parametrize("recorder", [("--json-mirror",)], indirect=True)
 def test_the_recorder_process_writes_the_json_mirror(recorder):
     p, h, path = recorder

@@ -116,7 +116,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     """Fetch the map and mission, then answer every scan with a command until stopped."""
     run, vid = args.run_id, args.vid
     drops = DropCounter()
-    scans: queue.Queue[Scan] = queue.Queue()
+    scans: queue.Queue[Scan | None] = queue.Queue()  # None: the outcome came, stop now
     deadline = time.monotonic() + args.startup_timeout_s
     try:
         mapmsg = _ask(session, keys.world_map(run), MapMsg, deadline, drops)
@@ -137,7 +137,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
         session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
-        session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: stop.set(), drops)),
+        session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
     ]
     cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
     rejected_pub = reliable_publisher(session, keys.rejected(run, vid)) if guard is not None else None
@@ -157,6 +157,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                     log.warning("no scan for %.0f s; exiting", args.idle_exit_s)
                     break
                 continue
+            if scan is None:
+                break
             last_scan = time.monotonic()
             faults.at(scan.tick)
             faulthandler.dump_traceback_later(STALL_DUMP_S)  # a stalled tick leaves its stack in the log
@@ -193,6 +195,13 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         Path(profile_dir).mkdir(parents=True, exist_ok=True)
         profiler.dump_stats(Path(profile_dir) / f"agent{vid}.pstats")
     return 0
+
+
+def _halt(stop: threading.Event, scans: queue.Queue) -> None:
+    """The outcome: stop, and wake the loop if it waits for a scan (the run's teardown
+    waits for every agent to go)."""
+    stop.set()
+    scans.put(None)
 
 
 class ProcessCpu:

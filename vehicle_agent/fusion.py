@@ -352,10 +352,12 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
 
 
 @njit(cache=True)
-def _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
-    """(x, y) inside ``box`` (the bodies' bounding box) and on one of the bodies: the
-    per-point test of ``_mark_mine`` and ``_mark_mine_placed``."""
-    if not (x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]):
+def _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi):
+    """(x, y) inside the bodies' bounding box and on one of the bodies: the per-point
+    test of ``_mark_mine`` and ``_mark_mine_placed``. The box comes as four floats: as
+    an array, indexing it in this called function made the two kernels 15x slower (1.7
+    ms for 35 000 points, the agent's largest kernel at 40 vehicles, against 0.11)."""
+    if not (x >= x_lo and x <= x_hi and y >= y_lo and y <= y_hi):
         return False
     for i in range(len(px)):
         dx, dy = x - px[i], y - py[i]
@@ -371,12 +373,13 @@ def _mark_mine(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length, half_w
     object's ``shift`` back), in one pass: sets ``mine`` and counts each object's
     ``hits``. The same tests in the same arithmetic as ``on_body``."""
     p = 0
+    x_lo, x_hi, y_lo, y_hi = box[0], box[1], box[2], box[3]
     for k in range(len(counts)):
         for _ in range(counts[k]):
             x, y = pts[p, 0], pts[p, 1]
             x0, y0 = x - shift[k, 0], y - shift[k, 1]  # where it was captured
-            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box) or \
-                    _on_a_body(x0, y0, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
+            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi) or \
+                    _on_a_body(x0, y0, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi):
                 mine[p] = True
                 hits[k] += 1.0
             p += 1
@@ -438,13 +441,14 @@ def _mark_mine_placed(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length,
     """``_mark_mine`` of the points placed at their objects' ``shift`` (``_moved``'s sums),
     placing them on the fly."""
     start = 0
+    x_lo, x_hi, y_lo, y_hi = box[0], box[1], box[2], box[3]
     for k in range(len(counts)):
         sx, sy = shift[k, 0], shift[k, 1]
         n_hits = 0
         for p in range(start, start + counts[k]):
             x, y = pts[p, 0] + sx, pts[p, 1] + sy
-            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, box) or \
-                    _on_a_body(x - sx, y - sy, px, py, cos_yaw, sin_yaw, half_length, half_width, box):
+            if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi) or \
+                    _on_a_body(x - sx, y - sy, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi):
                 mine[p] = True
                 n_hits += 1
         hits[k] = n_hits

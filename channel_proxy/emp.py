@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from channel_proxy.loss import EMP_DOWN, EMP_UP, bernoulli
 from channel_proxy.medium import NS, TOLERANCE_NS, airtime_ns
@@ -26,20 +27,44 @@ RELAY_VID = -1  # the relay's id in loss draws
 HEADER_BYTES = 64
 
 
-def voronoi_segment(points_xy: np.ndarray, own_xy: np.ndarray, others_xy: np.ndarray, chunk: int = 65536) -> np.ndarray:
+def voronoi_segment(points_xy: np.ndarray, own_xy: np.ndarray, others_xy: np.ndarray) -> np.ndarray:
     """bool (n,): the points that lie in the vehicle's own Voronoi cell (no other site is
-    strictly nearer). Points are processed in chunks to bound memory."""
-    pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    strictly nearer; squared distances compared as ``dx * dx + dy * dy`` in float64)."""
+    pts = np.ascontiguousarray(np.asarray(points_xy, dtype=np.float64).reshape(-1, 2))
     others = np.asarray(others_xy, dtype=np.float64).reshape(-1, 2)
     own = np.asarray(own_xy, dtype=np.float64).reshape(2)
     if len(others) == 0:
         return np.ones(len(pts), dtype=bool)
-    out = np.empty(len(pts), dtype=bool)
-    for lo in range(0, len(pts), chunk):
-        p = pts[lo:lo + chunk]
-        d_own = np.sum((p - own) ** 2, axis=1)
-        d_min = np.min(np.sum((p[:, None, :] - others[None, :, :]) ** 2, axis=2), axis=1)
-        out[lo:lo + chunk] = d_own <= d_min
+    # nearest sites first, with their distance from our own site: a site at least twice as
+    # far from us as a point is cannot be nearer to it than we are (triangle inequality),
+    # so a point stops testing at the first such site. The brute-force test over every
+    # site (a (n, sites, 2) array) was an EMP agent's whole tick at 40 vehicles: ~70 ms.
+    gap = np.hypot(others[:, 0] - own[0], others[:, 1] - own[1])
+    order = np.argsort(gap, kind="stable")
+    return _in_own_cell(pts, own[0], own[1], np.ascontiguousarray(others[order]), gap[order])
+
+
+@njit(cache=True)
+def _in_own_cell(pts, ox, oy, sites, gap):
+    """``voronoi_segment``'s test, point by point, over ``sites`` ascending by ``gap``
+    (their distance from ours). The cut-off keeps a margin far above rounding: a site
+    skipped is farther from the point than ours by much more than any rounding error,
+    so the answer is the brute force's, bit for bit."""
+    out = np.empty(len(pts), dtype=np.bool_)
+    for i in range(len(pts)):
+        x, y = pts[i, 0], pts[i, 1]
+        dx, dy = x - ox, y - oy
+        d_own = dx * dx + dy * dy
+        reach = 2.0 * np.sqrt(d_own) * (1.0 + 1e-9) + 1e-9
+        mine = True
+        for k in range(len(sites)):
+            if gap[k] > reach:
+                break
+            ex, ey = x - sites[k, 0], y - sites[k, 1]
+            if ex * ex + ey * ey < d_own:
+                mine = False
+                break
+        out[i] = mine
     return out
 
 

@@ -4,6 +4,8 @@ overflow, collisions (with half duplex), utilisation, the reception model, the d
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import pytest
 
 from channel_proxy import emp, loss, medium
@@ -167,6 +169,27 @@ def test_voronoi_segment():
     mine = emp.voronoi_segment(pts, np.array([0.0, 0.0]), np.array([[10.0, 0.0]]))
     assert mine.tolist() == [True, True, False, True]  # the bisector at x = 5 is kept by both
     assert emp.voronoi_segment(pts, np.zeros(2), np.zeros((0, 2))).all()
+
+
+def _voronoi_brute_force(pts, own, others):
+    """The reference: every point against every site, as numpy arrays."""
+    d_own = np.sum((pts - own) ** 2, axis=1)
+    d_min = np.min(np.sum((pts[:, None, :] - others[None, :, :]) ** 2, axis=2), axis=1)
+    return d_own <= d_min
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 40), st.integers(0, 400), st.booleans())
+def test_voronoi_segment_is_the_brute_force_cell(seed, n_sites, n_pts, grid):
+    """The pruned kernel against the brute force, bit for bit; ``grid`` puts sites and
+    points on a 1 m lattice, so many points lie exactly on a bisector (ties: ours) and
+    sites coincide."""
+    rng = np.random.default_rng(seed)
+    draw = (lambda n: rng.integers(-20, 21, (n, 2)).astype(np.float64)) if grid else \
+        (lambda n: rng.uniform(-300, 300, (n, 2)))
+    sites, pts = draw(n_sites + 1), draw(n_pts)
+    own, others = sites[0], sites[1:]
+    assert emp.voronoi_segment(pts, own, others).tolist() == _voronoi_brute_force(pts, own, others).tolist()
 
 
 def test_relay_round_robin_store_and_forward_and_overflow():

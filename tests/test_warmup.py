@@ -9,12 +9,14 @@ import numpy as np
 
 from numba.core.dispatcher import Dispatcher
 
+from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, Scan
 from vehicle_agent.agent import Agent
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.agreement import plan as plan_transmissions
+from vehicle_agent.frames import scan_to_world
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import Obstacle, first_conflict
 from vehicle_agent.warmup import warm_up
@@ -26,7 +28,7 @@ def kernel_signatures() -> dict[str, int]:
     """How many compiled signatures each numba kernel of the agent's modules has."""
     out = {}
     for name, module in list(sys.modules.items()):
-        if not name.startswith("vehicle_agent"):
+        if not name.startswith(("vehicle_agent", "channel_proxy.emp")):  # EMP's segment is cut in the agent
             continue
         for attr, value in vars(module).items():
             if isinstance(value, Dispatcher):
@@ -55,6 +57,9 @@ def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
     payloads = truck.dataplane.payloads(truck_view, [t.track_id for t in truck_view.tracks])
     assert payloads, "the truck should see something to share"
     ego.drive(ego_view, ego.fuse(ego_view, list(payloads.values())), scans[0])
+    world = scan_to_world(scans[0], ego.mission.lidar)  # EMP's segment of the scan
+    truck_xy = np.array([[scans[1].pose.x_m, scans[1].pose.y_m]])
+    voronoi_segment(world[:, :2], np.array([scans[0].pose.x_m, scans[0].pose.y_m]), truck_xy)
     # nothing moves at the start: a car that crosses the ego's planned path when it gets there
     path = ego.last_plan.path
     t_path = arc_lengths(path) / 10.0

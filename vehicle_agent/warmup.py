@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from channel_proxy.emp import voronoi_segment
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent, _mark_cells
@@ -62,8 +63,9 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
 
 
 def _warm_merged_perception(agent: Agent, scan: Scan) -> None:
-    """EMP perceives its scan merged with the relay's points, through the world-point
-    kernels (``build_grid``, ``extract_objects``); every other scheme perceives from the
+    """EMP cuts its Voronoi segment out of its scan (``voronoi_segment``) and perceives
+    its scan merged with the relay's points, through the world-point kernels
+    (``build_grid``, ``extract_objects``); every other scheme perceives from the
     range image. Left out here, the first EMP tick compiled them in every agent at once
     on a cold cache, past the world's 10 s per-tick timeout: all agents were declared
     dead. Called directly, so the agent's tracker sees one scan only."""
@@ -71,6 +73,7 @@ def _warm_merged_perception(agent: Agent, scan: Scan) -> None:
     xy = (scan.pose.x_m, scan.pose.y_m)
     grid, cell_idx = build_grid(world, xy, agent.dataplane.spec, agent.dataplane.raster)
     extract_objects(world, grid, cell_idx, xy)
+    voronoi_segment(world[:, :2], np.array(xy), np.array([[xy[0] + 50.0, xy[1]]]))  # the segment it uploads
 
 
 def _warm_conflict(agent: Agent) -> None:

@@ -283,21 +283,23 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 # teardown (its launcher and N + 3 processes forked from the sweep's warm factory) and
 # seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
 # autocast's. How they were measured: docs/experiments.md.
-MODEL_STARTUP_S = {5: 0.95, 10: 1.11, 20: 1.28, 40: 2.12}
-MODEL_TICK_S = {5: 0.0349, 10: 0.0595, 20: 0.118, 40: 0.249}
-# A scheme's tick as a multiple of autocast's, by connected vehicles: EMP's relay grows
-# with the square of the vehicles (every segment to every receiver), so its factor does
-# too; 20 and 40 vehicles from a sample of the paper preset (docs/experiments.md).
+MODEL_STARTUP_S = {5: 0.5, 10: 0.6, 20: 0.9, 40: 1.8}
+MODEL_TICK_S = {5: 0.0332, 10: 0.0541, 20: 0.114, 40: 0.257}
+# A scheme's tick as a multiple of autocast's, by connected vehicles (the median ratio,
+# scheme over autocast, in the same scenario; docs/experiments.md); agnostic: 1.
 MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {
-    "single": {5: 0.23, 10: 0.23, 20: 0.55, 40: 0.36}, "lane": {5: 0.23, 40: 0.23},
-    "emp": {5: 1.67, 10: 1.67, 20: 2.7, 40: 3.7}}
+    "single": {5: 0.58, 10: 0.6, 20: 0.45, 40: 0.36}, "lane": {5: 0.58, 40: 0.36},
+    "emp": {5: 1.04, 10: 1.24, 20: 1.06, 40: 0.96}}
+# With --jobs > 1, runs whose vehicles fit the budget twice run two at once; a pair takes
+# less than the two runs alone (each leaves idle time in its lock-step phases): the
+# sweep's wall time per such run is its time alone over this gain.
+PAIR_GAIN = 1.25
 # A run ends once its outcome is decided, rarely at its time limit. What a sweep's wall
 # time sums is each run's ticks, so the model takes the mean sim time at which judged runs
 # ended, by scenario (the paper preset at 5 and 10 vehicles, 360 runs, all schemes;
 # docs/experiments.md), and their mean for a scenario it has not seen.
 TYPICAL_END_S = {"left_turn": 14.5, "overtaking": 21.9, "red_light": 9.6}
 TYPICAL_END_OTHER_S = 15.3
-PARALLEL_GAIN = 1.0  # --jobs 2 over --jobs 1: one run already keeps ~1.8 of the 2 cores busy
 MIN_CALIBRATION_RUNS = 3
 
 
@@ -339,9 +341,12 @@ def calibration(records: Iterable[dict[str, Any]]) -> tuple[float, int]:
     return ratios[len(ratios) // 2], len(ratios)
 
 
-def estimate_wall_s(keys: Iterable[RunKey], jobs: int, scale: float = 1.0) -> float:
-    total = sum(estimate_run_s(k) for k in keys) * scale
-    return total / (PARALLEL_GAIN if jobs > 1 else 1.0)
+def estimate_wall_s(keys: Iterable[RunKey], jobs: int, scale: float = 1.0, vehicle_budget: int = 20) -> float:
+    """The sweep's wall time: its runs' times alone, those that can pair up (``jobs`` > 1
+    and twice their vehicles within ``vehicle_budget``) over ``PAIR_GAIN``."""
+    pairs = jobs > 1
+    return scale * sum(estimate_run_s(k) / (PAIR_GAIN if pairs and 2 * k.vehicles <= vehicle_budget else 1.0)
+                       for k in keys)
 
 
 def _duration(s: float) -> str:
@@ -781,7 +786,7 @@ def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: 
         per = scale * statistics.fmean(estimate_run_s(k) for k in keys if k.vehicles == n)
         lines.append(f"  {n:>8} {sum(k.vehicles == n for k in keys):>6} {len(mine):>7} {per:>11.0f} s"
                      f" {_duration(scale * sum(estimate_run_s(k) for k in mine)):>12}")
-    wall = estimate_wall_s(todo, jobs, scale)
+    wall = estimate_wall_s(todo, jobs, scale, vehicle_budget)
     how = f"--jobs {jobs}, vehicle budget {vehicle_budget}" if jobs > 1 else "--jobs 1"
     hours = f"{wall / 3600:.1f} h, " if wall >= 3600 else ""
     basis = (f"the model x {scale:.2f}, the median measured/modelled of the {measured} runs recorded here"
@@ -843,7 +848,7 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         plan = {"spec": asdict(spec), "runs": [{"run_key": k.name, **asdict(k)} for k in keys],
                 "jobs": args.jobs, "vehicle_budget": args.vehicle_budget, "to_run": len(todo),
                 "runs_dir": str(sweep.runs_dir), "cluster": args.cluster,
-                "estimated_wall_s": round(estimate_wall_s(todo, args.jobs, scale)), "git_revision": git_revision(),
+                "estimated_wall_s": round(estimate_wall_s(todo, args.jobs, scale, args.vehicle_budget)), "git_revision": git_revision(),
                 "written_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv[1:]}
         (out / PLAN).write_text(json.dumps(plan, indent=1) + "\n")
         print(text, file=sys.stderr)

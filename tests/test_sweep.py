@@ -144,6 +144,17 @@ def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
     assert sweep.estimate_wall_s([key, key], jobs=1, scale=3.0) == pytest.approx(90.0)
 
 
+def test_with_jobs_runs_that_fit_the_budget_twice_pair_up(monkeypatch):
+    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 40: 5.0})
+    monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 40: 0.1})
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 15 s alone
+    monkeypatch.setattr(sweep, "PAIR_GAIN", 1.5)
+    small, big = (RunKey("left_turn", n, 30.0, 0.0, "autocast", 0, 20.0) for n in (5, 40))
+    assert sweep.estimate_wall_s([small, big], jobs=1) == pytest.approx(30.0)
+    assert sweep.estimate_wall_s([small, big], jobs=2, vehicle_budget=20) == pytest.approx(10.0 + 15.0)
+    assert sweep.estimate_wall_s([small, big], jobs=2, vehicle_budget=9) == pytest.approx(30.0)  # 5 + 5 > 9
+
+
 # ---------------------------------------------------------------------------- records
 
 

@@ -296,15 +296,21 @@ MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {
 PAIR_GAIN = 1.25
 # A run ends once its outcome is decided, rarely at its time limit. What a sweep's wall
 # time sums is each run's ticks, so the model takes the mean sim time at which judged runs
-# ended, by scenario (the paper preset at 5 and 10 vehicles, 360 runs, all schemes;
-# docs/experiments.md), and their mean for a scenario it has not seen.
-TYPICAL_END_S = {"left_turn": 14.5, "overtaking": 21.9, "red_light": 9.6}
+# ended, by scenario and collider speed (a slower collider reaches the conflict later:
+# the left turn ended at 17.7 s on average with the collider at 20 km/h, at 11.4 s at
+# 40), from the paper preset at 5 and 10 vehicles (480 judged runs, all schemes;
+# docs/experiments.md); linear in between, and the scenarios' mean for one it has not seen.
+TYPICAL_END_S: dict[str, float | dict[int, float]] = {
+    "left_turn": {20: 17.7, 30: 14.5, 40: 11.4},
+    "overtaking": {20: 28.9, 30: 20.7, 40: 16.0},
+    "red_light": {20: 10.0, 30: 9.5, 40: 9.4}}
 TYPICAL_END_OTHER_S = 15.3
 MIN_CALIBRATION_RUNS = 3
 
 
-def _interp(table: Mapping[int, float], n: int) -> float:
-    """Piecewise linear in the vehicle count, extended linearly beyond the measured ones."""
+def _interp(table: Mapping[int, float], n: float) -> float:
+    """Piecewise linear in the key (a vehicle count, a speed), extended linearly beyond
+    the measured ones."""
     xs = sorted(table)
     if n <= xs[0]:
         lo, hi = xs[0], xs[1]
@@ -319,9 +325,15 @@ def _interp(table: Mapping[int, float], n: int) -> float:
     return max(0.0, table[lo] + t * (table[hi] - table[lo]))
 
 
+def typical_end_s(key: RunKey) -> float:
+    """The sim time at which a run like ``key`` typically ends (``TYPICAL_END_S``)."""
+    end = TYPICAL_END_S.get(key.scenario, TYPICAL_END_OTHER_S)
+    return end if isinstance(end, (int, float)) else max(1.0, _interp(end, key.collider_speed_kmh))
+
+
 def estimate_run_s(key: RunKey) -> float:
     """Wall seconds of one run alone: start-up + ticks x seconds per tick."""
-    ticks = min(key.duration_s, TYPICAL_END_S.get(key.scenario, TYPICAL_END_OTHER_S)) / 0.1
+    ticks = min(key.duration_s, typical_end_s(key)) / 0.1
     factor = MODEL_SCHEME_TICK.get(key.scheme)
     tick_s = _interp(MODEL_TICK_S, key.vehicles) * (_interp(factor, key.vehicles) if factor else 1.0)
     return _interp(MODEL_STARTUP_S, key.vehicles) + ticks * tick_s

@@ -131,6 +131,16 @@ def test_estimate_takes_each_scenarios_typical_end(monkeypatch):
     assert run("my_scenario", 40.0) == pytest.approx(120 * 0.1)  # one the model has not seen
 
 
+def test_the_typical_end_follows_the_collider_speed(monkeypatch):
+    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": {20: 18.0, 40: 12.0}, "red_light": 9.0})
+    end = lambda scenario, kmh: sweep.typical_end_s(RunKey(scenario, 10, kmh, 0.0, "autocast", 0, 30.0))  # noqa: E731
+    assert end("left_turn", 20.0) == pytest.approx(18.0)
+    assert end("left_turn", 30.0) == pytest.approx(15.0)  # halfway
+    assert end("left_turn", 50.0) == pytest.approx(9.0)  # beyond: the same slope
+    assert end("left_turn", 500.0) == pytest.approx(1.0)  # never below a second
+    assert end("red_light", 20.0) == end("red_light", 40.0) == pytest.approx(9.0)  # one figure for every speed
+
+
 def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
     monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 10: 5.0})
     monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 10: 0.1})

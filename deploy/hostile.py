@@ -85,7 +85,7 @@ KEY_TYPES: dict[Callable[..., str], type] = {
     keys.net_emp_down: EmpBundle, keys.rejected: Rejected,
 }
 # liveliness tokens and the run's wildcard
-NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.everything)
+NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.alive_any, keys.everything)
 MAX_PAYLOAD_BYTES = 4096  # garbage, not load: keep the hub's work small
 MARKER = b"\xc1hostile-peer: last payload"  # 0xc1 is never used by msgpack: garbage like the rest
 

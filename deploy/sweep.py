@@ -341,10 +341,12 @@ def estimate_run_s(key: RunKey) -> float:
 
 def calibration(records: Iterable[dict[str, Any]]) -> tuple[float, int]:
     """How much slower than the model this machine ran the sweep's judged runs so far:
-    the median of measured over modelled wall time (1.0 below ``MIN_CALIBRATION_RUNS``)."""
+    the median of measured over modelled wall time (1.0 below ``MIN_CALIBRATION_RUNS``).
+    Runs that ran beside another (``"alone": false``) are left out: the model is of a
+    run alone, and a run in a pair takes ~1.5x that (the pair's gain is ``PAIR_GAIN``)."""
     ratios = []
     for r in records:
-        if r.get("status") == "judged" and r.get("wall_total_s"):
+        if r.get("status") == "judged" and r.get("wall_total_s") and r.get("alone", True):
             key = RunKey(**{f.name: r[f.name] for f in fields(RunKey)})
             ratios.append(r["wall_total_s"] / estimate_run_s(key))
     if len(ratios) < MIN_CALIBRATION_RUNS:
@@ -353,12 +355,16 @@ def calibration(records: Iterable[dict[str, Any]]) -> tuple[float, int]:
     return ratios[len(ratios) // 2], len(ratios)
 
 
+def sweep_cost_s(key: RunKey, jobs: int, vehicle_budget: int) -> float:
+    """What a run adds to its sweep's wall time: its time alone, over ``PAIR_GAIN`` if it
+    can pair up (``jobs`` > 1 and twice its vehicles within ``vehicle_budget``)."""
+    pairs = jobs > 1 and 2 * key.vehicles <= vehicle_budget
+    return estimate_run_s(key) / (PAIR_GAIN if pairs else 1.0)
+
+
 def estimate_wall_s(keys: Iterable[RunKey], jobs: int, scale: float = 1.0, vehicle_budget: int = 20) -> float:
-    """The sweep's wall time: its runs' times alone, those that can pair up (``jobs`` > 1
-    and twice their vehicles within ``vehicle_budget``) over ``PAIR_GAIN``."""
-    pairs = jobs > 1
-    return scale * sum(estimate_run_s(k) / (PAIR_GAIN if pairs and 2 * k.vehicles <= vehicle_budget else 1.0)
-                       for k in keys)
+    """The sweep's wall time: the sum of its runs' ``sweep_cost_s``."""
+    return scale * sum(sweep_cost_s(k, jobs, vehicle_budget) for k in keys)
 
 
 def _duration(s: float) -> str:
@@ -445,6 +451,7 @@ class Job:
     t_start: float
     deadline: float
     cpu_s: float | None = None  # user + system time of the launcher and every process it reaped
+    alone: bool = True  # no other run of the sweep ran at the same time
 
     def exited(self) -> bool:
         """Reap the launcher if it has exited, keeping its rusage (which includes its children's)."""
@@ -558,7 +565,7 @@ class Sweep:
     def execute(self, todo: list[RunKey], progress: Progress) -> tuple[int, bool]:
         """Run ``todo``; return (failed runs, interrupted)."""
         pending = deque(todo)
-        self.model_pending_s = sum(estimate_run_s(k) for k in todo)
+        self.model_pending_s = sum(self._cost(k) for k in todo)
         failed = 0
         while pending or self.running:
             if self.stop_requested:
@@ -566,7 +573,7 @@ class Sweep:
                 return failed, True
             while pending and self._can_start(pending[0]):
                 key = pending.popleft()
-                self.model_pending_s -= estimate_run_s(key)
+                self.model_pending_s -= self._cost(key)
                 self._start(key)
             finished = [(j, False) for j in self.running if j.exited()]
             finished += [(j, True) for j in self.running if time.monotonic() > j.deadline and not j.exited()]
@@ -576,7 +583,7 @@ class Sweep:
                     self._terminate(job)
                 rec = self._finish(job, timed_out)
                 failed += rec["status"] == "failed"
-                self.model_done_s += estimate_run_s(job.key)
+                self.model_done_s += self._cost(job.key)
                 progress.finished(rec, self._model())
             progress.draw([j.run_id for j in self.running], self._model())
             time.sleep(0.2)
@@ -586,9 +593,12 @@ class Sweep:
         """The model's seconds of work done (finished runs, and running ones up to their
         estimate) and still to do (pending runs, the rest of running ones)."""
         now = time.monotonic()
-        est = [(estimate_run_s(j.key), now - j.t_start) for j in self.running]
+        est = [(self._cost(j.key), now - j.t_start) for j in self.running]
         return (self.model_done_s + sum(min(e, age) for e, age in est),
                 self.model_pending_s + sum(max(0.0, e - age) for e, age in est))
+
+    def _cost(self, key: RunKey) -> float:
+        return sweep_cost_s(key, self.jobs, self.vehicle_budget)
 
     def _can_start(self, key: RunKey) -> bool:
         if not self.running:
@@ -622,7 +632,10 @@ class Sweep:
                 proc = subprocess.Popen(argv, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
                                         start_new_session=True, env=env)
         now = time.monotonic()
-        self.running.append(Job(key, run_id, proc, out_path, err_path, now, now + self.spec.timeout_s + LAUNCHER_SLACK_S))
+        for other in self.running:  # runs in pairs are slower each: calibration() leaves them out
+            other.alone = False
+        self.running.append(Job(key, run_id, proc, out_path, err_path, now, now + self.spec.timeout_s + LAUNCHER_SLACK_S,
+                                alone=not self.running))
         log.debug("started %s (pid %d): %s", run_id, proc.pid, " ".join(argv))
 
     def _finish(self, job: Job, timed_out: bool = False) -> dict[str, Any]:
@@ -633,7 +646,7 @@ class Sweep:
         if timed_out:
             stderr += (f"\nautocast sweep: the launcher did not exit within {self.spec.timeout_s + LAUNCHER_SLACK_S:.0f} s;"
                        " killed it and its processes")
-        extra = {"cpu_s": None if job.cpu_s is None else round(job.cpu_s, 1),
+        extra = {"cpu_s": None if job.cpu_s is None else round(job.cpu_s, 1), "alone": job.alone,
                  **limit_mcap(self.runs_dir / job.run_id, self.spec.mcap_limit_mb)}
         rec = record_of(job.key, job.run_id, rc, stdout, stderr, wall_s, extra)
         if timed_out:
@@ -797,7 +810,7 @@ def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: 
         mine = [k for k in todo if k.vehicles == n]
         per = scale * statistics.fmean(estimate_run_s(k) for k in keys if k.vehicles == n)
         lines.append(f"  {n:>8} {sum(k.vehicles == n for k in keys):>6} {len(mine):>7} {per:>11.0f} s"
-                     f" {_duration(scale * sum(estimate_run_s(k) for k in mine)):>12}")
+                     f" {_duration(scale * sum(sweep_cost_s(k, jobs, vehicle_budget) for k in mine)):>12}")
     wall = estimate_wall_s(todo, jobs, scale, vehicle_budget)
     how = f"--jobs {jobs}, vehicle budget {vehicle_budget}" if jobs > 1 else "--jobs 1"
     hours = f"{wall / 3600:.1f} h, " if wall >= 3600 else ""

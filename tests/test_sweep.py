@@ -151,6 +151,8 @@ def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
                 for s, w in enumerate((30.0, 45.0, 60.0))]
     assert sweep.calibration(measured) == (pytest.approx(3.0), 3)  # median of 2x, 3x, 4x
     assert sweep.calibration(measured[:2]) == (1.0, 2)  # too few to trust
+    paired = [dict(r, seed=r["seed"] + 3, wall_total_s=150.0, alone=False) for r in measured]
+    assert sweep.calibration(measured + paired) == (pytest.approx(3.0), 3)  # runs in pairs are not the model's
     assert sweep.estimate_wall_s([key, key], jobs=1, scale=3.0) == pytest.approx(90.0)
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import types
 import typing
 from typing import Any
@@ -105,6 +106,24 @@ def _to_wire(value: Any) -> Any:
 
 
 _ENCODERS: dict[type, typing.Callable[[Any], list]] = {}
+# Encoders and converters are built on first use, in whichever thread needs one first (a
+# process decodes in Zenoh's callback threads and its own). One builder at a time; a
+# record's placeholder, which lets a record contain itself, waits for its builder if
+# another thread calls it meanwhile (it raised IndexError: a recorder died so, mirroring
+# a message while its fetcher thread built the same class's converter).
+_BUILDING = threading.RLock()
+
+
+def _placeholder(built: list) -> typing.Callable[[Any], Any]:
+    """Calls ``built[0]`` once the builder holding ``_BUILDING`` has put it there."""
+
+    def call(value: Any) -> Any:
+        if not built:
+            with _BUILDING:
+                pass
+        return built[0](value)
+
+    return call
 
 
 def _fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
@@ -115,8 +134,14 @@ def _fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
     got = _ENCODERS.get(cls)
     if got is not None:
         return got
+    with _BUILDING:
+        got = _ENCODERS.get(cls)
+        return got if got is not None else _build_fields_to_wire(cls)
+
+
+def _build_fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
     built: list[typing.Callable[[Any], list]] = []
-    _ENCODERS[cls] = lambda value: built[0](value)  # a record that (indirectly) contains itself
+    _ENCODERS[cls] = _placeholder(built)  # a record that (indirectly) contains itself
     env: dict[str, Any] = {"_to_wire": _to_wire, "_array_to_wire": _array_to_wire, "ndarray": np.ndarray}
     items = []
     for i, (name, hint) in enumerate(_hints(cls)):
@@ -173,7 +198,10 @@ def _converter(hint: Any) -> Converter:
     """
     got = _CONVERTERS.get(hint)
     if got is None:
-        got = _CONVERTERS[hint] = _build_converter(hint)
+        with _BUILDING:
+            got = _CONVERTERS.get(hint)
+            if got is None:
+                got = _CONVERTERS[hint] = _build_converter(hint)
     return got
 
 
@@ -332,7 +360,7 @@ def _record_converter(cls: type) -> Converter:
     names = [name for name, _ in hints]
     # a record may (indirectly) contain itself: whoever is built meanwhile calls through this
     built: list[Converter] = []
-    _CONVERTERS[cls] = lambda values: built[0](values)
+    _CONVERTERS[cls] = _placeholder(built)
     convs = [_converter(hint) for _, hint in hints]
     env: dict[str, Any] = {"cls": cls, "names": names, "_bad": _bad, "_FieldError": _FieldError,
                            "_array_from_wire": _array_from_wire, "needs": f"{cls.__name__} needs {len(names)} fields"}

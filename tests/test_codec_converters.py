@@ -196,3 +196,61 @@ def test_generated_encoders_write_the_bytes_the_type_tests_wrote(cls, seed):
         for f, _ in codec._hints(cls):
             object.__setattr__(other, f, odd.get(f, getattr(msg, f)))
         assert encode(other) == reference_encode(other)
+
+
+def test_a_converter_built_in_one_thread_is_waited_for_in_another(monkeypatch):
+    """Converters are built on first use in whichever thread decodes first. Another
+    thread that meets the record's placeholder mid-build waits for the builder instead of
+    failing (it raised IndexError: a recorder died so). The builder is held mid-build
+    until the other thread is at the build lock: no timing decides the verdict."""
+    import threading
+    from dataclasses import dataclass
+
+    from protocol import codec
+
+    @dataclass(frozen=True, slots=True)
+    class Rec:
+        a: int
+        b: float
+
+    builder_id: list[int] = []
+    waiting = threading.Event()
+    real_lock = codec._BUILDING
+
+    class Watched:
+        def __enter__(self):
+            if threading.get_ident() not in builder_id:
+                waiting.set()
+            return real_lock.__enter__()
+
+        def __exit__(self, *exc):
+            return real_lock.__exit__(*exc)
+
+    real_inline = codec._inline
+
+    def held_inline(hint, name):
+        assert waiting.wait(60), "the other thread never reached the build lock"
+        return real_inline(hint, name)
+
+    monkeypatch.setattr(codec, "_BUILDING", Watched())
+    monkeypatch.setattr(codec, "_inline", held_inline)
+    installed = threading.Event()
+    real_placeholder = codec._placeholder
+
+    def placeholder(built):
+        out = real_placeholder(built)
+        installed.set()
+        return out
+
+    monkeypatch.setattr(codec, "_placeholder", placeholder)
+
+    def build():
+        builder_id.append(threading.get_ident())
+        codec._converter(Rec)
+
+    builder = threading.Thread(target=build)
+    builder.start()
+    assert installed.wait(60)
+    assert codec._CONVERTERS[Rec]([1, 2.0]) == Rec(1, 2.0)  # the placeholder, called mid-build
+    builder.join(60)
+    assert codec._CONVERTERS[Rec]([3, 4.0]) == Rec(3, 4.0)

@@ -56,6 +56,7 @@ from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, message_class
+from protocol.faults import Injector
 from protocol import messages
 from protocol.messages import Outcome, Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
@@ -381,6 +382,7 @@ class Recorder:
         self._last_event = time.monotonic()  # the latest sample or token change
         self._outcome_key = keys.world_outcome(cfg.run_id)
         self._tick_key = keys.world_tick(cfg.run_id)
+        self.faults = Injector("recorder")
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -469,6 +471,8 @@ class Recorder:
         try:
             item = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
             while True:
+                if self.faults.faults and (env := peek_envelope(item[1])) is not None:
+                    self.faults.at(env.tick)
                 out.write(*item)
                 item = self._inbox.get_nowait()
         except queue.Empty:

@@ -457,6 +457,12 @@ class Launcher:
         result = dict(self.outcome.result)
         if result.get("outcome") is None:
             return RunResult(EXIT_FAILED, None, result.get("failure") or "the world judged nothing")
+        recorder = self.procs.procs.get(table.RECORDER)
+        rc = recorder[1].returncode if recorder is not None else 0
+        if rc:  # judged all the same: the outcome is the world's; but the log may be cut short
+            result["recorder_failed"] = (f"the recorder exited with code {rc} after the outcome: "
+                                         f"{self.cfg.mcap_path} may be incomplete (see logs/recorder.log)")
+            log.warning("%s", result["recorder_failed"])
         result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
                        "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None,
                        "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line

@@ -11,7 +11,10 @@ Actions:
 - ``hang``: block that thread forever (a process that is alive and silent).
 
 Processes name themselves as the launcher's table does: ``world``, ``proxy``,
-``agent<vid>``. A bad specification is an error at start-up, naming the entry.
+``agent<vid>``, ``recorder`` (at the first message it writes of that tick or later: the
+world's outcome carries the tick after the last played, so ``recorder:kill@N`` of a run
+of N ticks kills it as the outcome arrives). A bad specification is an error at
+start-up, naming the entry.
 """
 
 from __future__ import annotations

@@ -247,6 +247,18 @@ def test_a_critical_process_dying_fails_the_run(launches, process, scheme):
     assert launch.leftovers() == []
 
 
+def test_a_recorder_that_dies_at_the_outcome_is_reported_with_the_judged_run(launches):
+    """The recorder is SIGKILLed as the outcome (tick 5 of a 5-tick run) reaches it: the
+    world's outcome still stands, and the result says the MCAP may be incomplete."""
+    launch = launches("recorderdies", "--scenario", "left_turn", "--vehicles", "2", "--scheme", "single",
+                      "--duration", "0.5", faults="recorder:kill@5")
+    assert launch.finish(timeout=120) in (0, 1), launch.stderr
+    assert launch.result["outcome"] is not None
+    assert "the recorder exited with code -9 after the outcome" in launch.result["recorder_failed"]
+    assert "may be incomplete" in launch.stderr
+    assert launch.leftovers() == []
+
+
 def test_a_run_cut_short_by_the_wall_clock_limit_is_failed_not_judged(launches):
     """Agent 1 hangs at tick 3 (and may take 600 s before it is declared dead), so only
     the run's 2 s wall-clock limit ends it: the run is failed with that reason, never

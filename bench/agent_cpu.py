@@ -3,7 +3,7 @@ any two versions of the code compare the same way (back to back).
 
 The agents' own exit figures (``proc_cpu``, what ``autocast bench pipeline`` reports)
 exist only in versions that print them. This bench reads every agent process's user +
-system CPU from ``/proc/<pid>/stat`` twice, ``--window`` seconds apart, starting
+system CPU (its threads' ``/proc`` schedstat, as ``bench.fixed_cost`` does) twice, ``--window`` seconds apart, starting
 ``--settle`` seconds after the world's first tick (its log line ``N of N agents up;
 starting``), and divides by the ticks in that window (the window times the run's
 lock-step real-time factor over 0.1 s). The run: ``autocast run --scenario left_turn
@@ -16,8 +16,7 @@ do not.
 
     python -m bench.agent_cpu --vehicles 40 --rounds 2 --against ../base
 
-Linux only (``/proc``); the figure is in clock ticks of 10 ms summed over 40 agents and
-~30 ticks, so read it to two digits.
+Linux only (``/proc``).
 """
 
 from __future__ import annotations
@@ -32,6 +31,8 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from bench.fixed_cost import process_cpu_s
 
 HERE = Path(__file__).resolve().parent.parent  # this checkout
 UP_LINE = "agents up; starting"
@@ -50,16 +51,13 @@ class Sample:
 def _agent_cpu_s(run_id: str) -> dict[int, float]:
     """user + system CPU seconds of every agent process of ``run_id``, by pid."""
     out = {}
-    tick_s = os.sysconf("SC_CLK_TCK")
     for pid in filter(str.isdigit, os.listdir("/proc")):
         try:
             argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            if b"vehicle_agent" not in argv or run_id.encode() not in argv:
-                continue
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            out[int(pid)] = (int(fields[11]) + int(fields[12])) / tick_s  # utime, stime
-        except (FileNotFoundError, ProcessLookupError, PermissionError):
+        except OSError:  # gone
             continue
+        if b"vehicle_agent" in argv and run_id.encode() in argv:
+            out[int(pid)] = process_cpu_s(int(pid))
     return out
 
 

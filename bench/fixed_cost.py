@@ -137,16 +137,16 @@ class _Sampler(threading.Thread):
                 text = ""
             if self.cpu_up_s is None and "agents up; starting" in text:
                 pids = _tree(self.root)
-                self.cpu_up_s = sum(_cpu_s(p) for p in pids)
+                self.cpu_up_s = sum(process_cpu_s(p) for p in pids)
                 if self.pss:
                     self.pss_mib = sum(_pss_kib(p) for p in pids) / 1024
             if self.cpu_up_s is not None and re.search(r"^outcome: ", text, re.M):
-                self.cpu_outcome_s = sum(_cpu_s(p) for p in _tree(self.root))
+                self.cpu_outcome_s = sum(process_cpu_s(p) for p in _tree(self.root))
                 return
             time.sleep(0.01)
 
 
-def _cpu_s(pid: int) -> float:
+def process_cpu_s(pid: int) -> float:
     """User + system time of ``pid``'s threads (ns precision) and of its reaped children."""
     total = 0.0
     try:

@@ -490,7 +490,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help=f"an entry of the '{METADATA_NAME}' metadata record (scenario, seed, scheme, ...)")
     ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     ap.add_argument("--drain-s", type=float, default=DRAIN_S,
-                    help="after the outcome, wait at most this long for the run's processes to go (default %(default)s)")
+                    help="after the outcome, wait at most this long for the run's processes to go "
+                         "(default %(default)s)")
     ap.add_argument("--json-mirror", action="store_true",
                     help="also write every message as JSON (jsonschema) on json/<key>, for Foxglove")
     ap.add_argument("--log-level", default="INFO")

@@ -137,7 +137,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
         session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
-        session.declare_subscriber(keys.world_outcome(run), typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
+        session.declare_subscriber(keys.world_outcome(run),
+                                   typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
     ]
     cmd_pub = reliable_publisher(session, keys.cmd(run, vid))
     rejected_pub = reliable_publisher(session, keys.rejected(run, vid)) if guard is not None else None

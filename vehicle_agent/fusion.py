@@ -447,8 +447,9 @@ def _mark_mine_placed(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length,
         n_hits = 0
         for p in range(start, start + counts[k]):
             x, y = pts[p, 0] + sx, pts[p, 1] + sy
+            x0, y0 = x - sx, y - sy  # where it was captured
             if _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi) or \
-                    _on_a_body(x - sx, y - sy, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi):
+                    _on_a_body(x0, y0, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi):
                 mine[p] = True
                 n_hits += 1
         hits[k] = n_hits

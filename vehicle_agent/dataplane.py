@@ -22,7 +22,7 @@ from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatc
 from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects,
                                       scan_grid, scan_objects)
-from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
+from vehicle_agent.spatial import match_vehicles, relevance, visible
 from vehicle_agent.tracking import Track, Tracker
 
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
@@ -177,9 +177,8 @@ class DataPlane:
             own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
                                           self.mission.spec.length_m, self.mission.spec.width_m, 0.0]]))
             occluders = np.concatenate([targets, own, self.buildings])
-            share = visible_share(viewers, np.full(len(viewers), self.mission.lidar.range_m), targets, occluders,
-                                  np.arange(len(tracks)), match_vehicles(viewers, centroids))
-            vis = visibility(share)
+            vis = visible(viewers, np.full(len(viewers), self.mission.lidar.range_m), targets, occluders,
+                          np.arange(len(tracks)), match_vehicles(viewers, centroids))
         with self._timed("relevance"):
             dims = np.array([[max(t.detection.length_m, t.detection.width_m, 1.0), max(t.detection.width_m, 1.0)]
                              for t in tracks]).reshape(-1, 2)

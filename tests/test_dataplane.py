@@ -12,9 +12,9 @@ from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import LidarConfig, Pose, Scan
 from vehicle_agent.frames import ray_tables, scan_to_world, sensor_to_world, world_to_sensor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
-from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _merge_shadowed,
-                                      _object_stats, build_grid, extract_objects, label_components, scan_grid,
-                                      scan_objects)
+from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _cells_by_label,
+                                      _labels, _merge_shadowed, _object_stats, build_grid, extract_objects,
+                                      label_components, scan_grid, scan_objects)
 from vehicle_agent.spatial import _inside, _ray_rect, relevance, sample_trajectory, visibility, visible_share
 from vehicle_agent.tracking import Tracker
 from world_server import lidar
@@ -166,6 +166,34 @@ def test_a_part_in_anothers_shadow_merges_only_across_unseen_cells(between, part
     merged, k = _merge_shadowed(labels, k, grid, (0.0, 0.0))
     assert k == parts and sorted(np.unique(merged).tolist()) == list(range(parts + 1))
     assert np.array_equal(merged > 0, labels > 0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_labels_equal_labelling_the_mask_then_merging_shadows(seed):
+    """``_labels`` (one kernel over the grid's ABOVE and drivable cells, then the shadow
+    merge on the labelled cells only) against the whole-grid reference: numpy's mask,
+    ``label_components``, ``_merge_shadowed``; and the cells grouped by label against a
+    stable sort by label."""
+    rng = np.random.default_rng(seed)
+    spec = GridSpec(half_extent_m=float(rng.choice([6.0, 12.0])), reach_cells=int(rng.integers(1, 4)))
+    n = spec.cells
+    state = rng.choice(np.array([EMPTY, GROUND, ABOVE], dtype=np.uint8), size=(n, n), p=[0.5, 0.3, 0.2])
+    drivable = rng.random((n, n)) < 0.8
+    grid = Grid(spec, int(rng.integers(-50, 50)), int(rng.integers(-50, 50)), state, drivable)
+    sensor = tuple(((np.array([grid.i0, grid.j0]) + rng.uniform(0, n, 2)) * spec.cell_m).tolist())
+    labels, k, cells = _labels(grid, sensor)
+    want, want_k = label_components((state == ABOVE) & drivable, spec.reach_cells)
+    if want_k > 1:
+        want, want_k = _merge_shadowed(want, want_k, grid, sensor)
+    assert k == want_k
+    np.testing.assert_array_equal(labels, want)
+    np.testing.assert_array_equal(cells, np.flatnonzero((state == ABOVE) & drivable))
+    got_cells, bounds = _cells_by_label(cells, labels.ravel(), k, n, grid.i0, grid.j0)
+    order = np.flatnonzero(labels.ravel())
+    order = order[np.argsort(labels.ravel()[order], kind="stable")]
+    np.testing.assert_array_equal(got_cells, np.stack([order % n + grid.i0, order // n + grid.j0], axis=1))
+    np.testing.assert_array_equal(bounds, np.concatenate([[0], np.cumsum(np.bincount(labels.ravel(), minlength=k + 1)[1:])]))
 
 
 def _quad(cx, cy, yaw, length, width):

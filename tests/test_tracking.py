@@ -150,3 +150,8 @@ def test_persisting_matches_a_brute_force_neighbour_search(seed):
     unshifted = (np.abs(np.floor(old / voxel)[:, None, :] - nv[None, :, :]).max(axis=2) <= 1).any(axis=1).mean()
     assert shares.tolist() == pytest.approx([unshifted, expected])
     assert _persisting(old[:0], now, np.array([[dx, dy]]), voxel).tolist() == [0.0]
+    # float32 points, as detected, give the shares of the same points widened to float64
+    old32, now32 = old.astype(np.float32), now.astype(np.float32)
+    shifts = np.array([[0.0, 0.0], [dx, dy], [-dx, 0.3]])
+    assert (_persisting(old32, now32, shifts, voxel).tolist()
+            == _persisting(old32.astype(np.float64), now32.astype(np.float64), shifts, voxel).tolist())

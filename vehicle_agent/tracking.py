@@ -200,8 +200,8 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
             continue
         if len(old) < EVIDENCE_MIN_POINTS:  # too sparse (far away) to tell a change of view from a move
             return None
-        now = np.ascontiguousarray(now, dtype=np.float64)
-        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)], dtype=np.float64)
+        now = np.ascontiguousarray(now)  # float32 as detected: the kernel widens each coordinate exactly
+        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)])
         shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
         shares = _persisting(old, now, shifts, VOXEL_M)
         best = int(np.argmax(shares[1:])) + 1
@@ -214,7 +214,9 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
 @njit(cache=True)
 def _persisting(old, now, shifts, voxel):
     """(S,) per shift (dx, dy): the share of the ``old`` points, shifted, that have a
-    point of ``now`` in their voxel or a neighbouring one (3-D, edge ``voxel``)."""
+    point of ``now`` in their voxel or a neighbouring one (3-D, edge ``voxel``).
+    Float32 points are widened to float64 before any arithmetic, as numpy's astype
+    would: the same shares."""
     n_shift = shifts.shape[0]
     out = np.zeros(n_shift)
     if old.shape[0] == 0 or now.shape[0] == 0:
@@ -222,21 +224,32 @@ def _persisting(old, now, shifts, voxel):
     lo = np.empty(3, dtype=np.int64)
     hi = np.empty(3, dtype=np.int64)
     for a in range(3):
-        lo[a] = np.int64(np.floor(now[:, a].min() / voxel)) - 1
-        hi[a] = np.int64(np.floor(now[:, a].max() / voxel)) + 1
+        lo[a] = np.int64(np.floor(np.float64(now[:, a].min()) / voxel)) - 1
+        hi[a] = np.int64(np.floor(np.float64(now[:, a].max()) / voxel)) + 1
     nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
-    occ = np.zeros((nx, ny, nz), dtype=np.bool_)
+    # the voxels of ``now`` (each once: a near car has thousands of points in a few
+    # hundred voxels), then each of them with its 26 neighbours
+    seen = np.zeros((nx, ny, nz), dtype=np.bool_)
+    voxels = np.empty((now.shape[0], 3), dtype=np.int64)
+    m = 0
     for p in range(now.shape[0]):
-        i = np.int64(np.floor(now[p, 0] / voxel)) - lo[0]
-        j = np.int64(np.floor(now[p, 1] / voxel)) - lo[1]
-        k = np.int64(np.floor(now[p, 2] / voxel)) - lo[2]
+        i = np.int64(np.floor(np.float64(now[p, 0]) / voxel)) - lo[0]
+        j = np.int64(np.floor(np.float64(now[p, 1]) / voxel)) - lo[1]
+        k = np.int64(np.floor(np.float64(now[p, 2]) / voxel)) - lo[2]
+        if not seen[i, j, k]:
+            seen[i, j, k] = True
+            voxels[m, 0], voxels[m, 1], voxels[m, 2] = i, j, k
+            m += 1
+    occ = np.zeros((nx, ny, nz), dtype=np.bool_)
+    for t in range(m):
+        i, j, k = voxels[t, 0], voxels[t, 1], voxels[t, 2]
         for a in range(-1, 2):
             for b in range(-1, 2):
                 for c in range(-1, 2):
                     occ[i + a, j + b, k + c] = True
     ks = np.empty(old.shape[0], dtype=np.int64)  # the height's voxel: no shift moves it
     for p in range(old.shape[0]):
-        ks[p] = np.int64(np.floor(old[p, 2] / voxel)) - lo[2]
+        ks[p] = np.int64(np.floor(np.float64(old[p, 2]) / voxel)) - lo[2]
     for s in range(n_shift):
         hit = 0
         sx, sy = shifts[s, 0], shifts[s, 1]
@@ -244,8 +257,8 @@ def _persisting(old, now, shifts, voxel):
             k = ks[p]
             if not 0 <= k < nz:
                 continue
-            i = np.int64(np.floor((old[p, 0] + sx) / voxel)) - lo[0]
-            j = np.int64(np.floor((old[p, 1] + sy) / voxel)) - lo[1]
+            i = np.int64(np.floor((np.float64(old[p, 0]) + sx) / voxel)) - lo[0]
+            j = np.int64(np.floor((np.float64(old[p, 1]) + sy) / voxel)) - lo[1]
             if 0 <= i < nx and 0 <= j < ny and occ[i, j, k]:
                 hit += 1
         out[s] = hit / old.shape[0]

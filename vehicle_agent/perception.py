@@ -339,7 +339,7 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     vehicles 110 000 rays of 24 bytes, read three times). ``tables``: the LiDAR's cos
     and sin of each azimuth and tan of each elevation (``frames.ray_tables``). Returns
     the grid and, for ``scan_objects``, the rays that can belong to an object: int32
-    (m, 2) rows (flat ray index, flat cell) of each return above the ground in a
+    (m, 3) rows (azimuth, beam, flat cell) of each return above the ground in a
     drivable cell of the grid, in ray order (about a fifth of the rays)."""
     x, y, yaw = pose_xyyaw
     n = spec.cells
@@ -347,7 +347,7 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     j0 = int(np.floor(y / spec.cell_m)) - n // 2
     state = np.zeros(n * n, dtype=np.uint8)
     window = drivable.window(i0, j0, n)
-    rays = np.empty((range_cm.size, 2), dtype=np.int32)  # pages past the m rows written are never touched
+    rays = np.empty((range_cm.size, 3), dtype=np.int32)  # pages past the m rows written are never touched
     cos_az, sin_az, tan_el = tables
     m = _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, spec.cell_m,
                   exact_inverse(spec.cell_m), n, spec.ground_clear_m, window.ravel(), state, rays)
@@ -371,7 +371,7 @@ def scan_objects(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.
 def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell, inv, n, clear, drivable, state,
               rays):
     """``_bin`` of the rays' world points (``frames._ranges_to_world``'s arithmetic):
-    classify cells; ``rays[:m]`` gets (flat ray index, flat cell) of each ray with a
+    classify cells; ``rays[:m]`` gets (azimuth, beam, flat cell) of each ray with a
     return above the ground in a ``drivable`` cell of the grid, in ray order; returns m.
     ``inv``: ``exact_inverse(cell)``. Replaces a per-ray int32 cell (every ray written,
     then every ray read twice): only these rays can be in an object. Per azimuth, the
@@ -393,8 +393,7 @@ def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell
             if above[b]:
                 state[q] = 2
                 if drivable[q]:
-                    rays[m, 0] = i * n_beams + b
-                    rays[m, 1] = q
+                    rays[m, 0], rays[m, 1], rays[m, 2] = i, b, q
                     m += 1
             elif state[q] == 0:
                 state[q] = 1
@@ -431,20 +430,19 @@ def _rays_by_label(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, rays, f
     label l's at ``bounds[l - 1]:bounds[l]``, in ray order."""
     counts = np.zeros(k + 1, dtype=np.int64)
     for t in range(rays.shape[0]):
-        counts[flat_labels[rays[t, 1]]] += 1
+        counts[flat_labels[rays[t, 2]]] += 1
     bounds = np.zeros(k + 1, dtype=np.int64)
     for lab in range(1, k + 1):
         bounds[lab] = bounds[lab - 1] + counts[lab]
     fill = bounds[:-1].copy()
     out = np.empty((bounds[k], 3))
     out32 = np.empty((bounds[k], 3), dtype=np.float32)
-    n_beams = range_cm.shape[1]
     c, s = np.cos(yaw), np.sin(yaw)
     for t in range(rays.shape[0]):
-        lab = flat_labels[rays[t, 1]]
+        lab = flat_labels[rays[t, 2]]
         if lab == 0:
             continue
-        i, b = divmod(rays[t, 0], n_beams)
+        i, b = rays[t, 0], rays[t, 1]
         wx = c * cos_az[i] - s * sin_az[i]
         wy = s * cos_az[i] + c * sin_az[i]
         d = range_cm[i, b] * 0.01

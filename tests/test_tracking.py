@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol.messages import LidarConfig, Pose
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.perception import DetectedObject, DrivableRaster, GridSpec, build_grid, extract_objects
-from vehicle_agent.tracking import (ACCEL_SIGMA_MPS2, INIT_SPEED_SIGMA_MPS, MEAS_SIGMA_M, Tracker, _persisting,
-                                   associate)
+from vehicle_agent.tracking import (ACCEL_SIGMA_MPS2, GATE_CHI2, GATE_MAX_M, GATE_MIN_M, INIT_SPEED_SIGMA_MPS,
+                                   MEAS_SIGMA_M, Tracker, _persisting, associate)
 from world_server import lidar
 
 DT = 0.1
@@ -155,3 +157,37 @@ def test_persisting_matches_a_brute_force_neighbour_search(seed):
     shifts = np.array([[0.0, 0.0], [dx, dy], [-dx, 0.3]])
     assert (_persisting(old32, now32, shifts, voxel).tolist()
             == _persisting(old32.astype(np.float64), now32.astype(np.float64), shifts, voxel).tolist())
+
+
+def _associate_numpy(predicted, variance, measured):
+    """The reference: ``associate`` in numpy, as it was written before its kernel."""
+    if len(predicted) == 0 or len(measured) == 0:
+        return []
+    dist = np.linalg.norm(predicted[:, None, :] - measured[None, :, :], axis=2)
+    radius = np.clip(np.sqrt(GATE_CHI2 * variance), GATE_MIN_M, GATE_MAX_M)
+    d2 = dist**2 / np.maximum(variance, 1e-9)[:, None]
+    ii, jj = np.nonzero(dist <= radius[:, None])
+    used_a, used_b, pairs = set(), set(), []
+    for k in np.lexsort((jj, ii, d2[ii, jj])):
+        i, j = int(ii[k]), int(jj[k])
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    return pairs
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_t=st.integers(0, 12), n_d=st.integers(0, 12), lattice=st.booleans())
+def test_associate_matches_the_numpy_formulation(seed, n_t, n_d, lattice):
+    """The same pairs in the same order, including ties (points on a 0.5 m lattice)."""
+    rng = np.random.default_rng(seed)
+    if lattice:
+        predicted = rng.integers(0, 12, (n_t, 2)) * 0.5
+        measured = rng.integers(0, 12, (n_d, 2)) * 0.5
+        variance = rng.choice([0.1, 0.4, 2.0], n_t)
+    else:
+        predicted = rng.uniform(0, 10, (n_t, 2))
+        measured = rng.uniform(0, 10, (n_d, 2))
+        variance = rng.uniform(0.0, 3.0, n_t)
+    assert associate(predicted, variance, measured) == _associate_numpy(predicted, variance, measured)

@@ -50,6 +50,9 @@ def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
     scans = {vid: decode(encode(Scan(sim.tick, sim.t_sim_s, vid, views[vid].pose, views[vid].speed_mps,
                                      views[vid].range_cm)), Scan) for vid in (0, 1)}
     ego_view, truck_view = ego.perceive(scans[0]), truck.perceive(scans[1])
+    again = views[1]  # the truck's next frame: its tracker pairs this frame's objects with its tracks
+    truck.perceive(decode(encode(Scan(sim.tick + 1, sim.t_sim_s + 0.1, 1, again.pose, again.speed_mps,
+                                      again.range_cm)), Scan))
     truck_msg = decode(encode(truck.control_message(truck_view, scans[1], heard=[0])), ControlMsg)
     ego.dataplane.neighbors.update([truck_msg])
     own = ego.control_message(ego_view, scans[0], heard=[1])

@@ -310,16 +310,41 @@ def associate(predicted: np.ndarray, variance: np.ndarray, measured: np.ndarray)
     gate's radius clipped to [GATE_MIN_M, GATE_MAX_M]."""
     if len(predicted) == 0 or len(measured) == 0:
         return []
-    dist = np.linalg.norm(predicted[:, None, :] - measured[None, :, :], axis=2)
-    radius = np.clip(np.sqrt(GATE_CHI2 * variance), GATE_MIN_M, GATE_MAX_M)
-    d2 = dist**2 / np.maximum(variance, 1e-9)[:, None]
-    ii, jj = np.nonzero(dist <= radius[:, None])
-    order = np.lexsort((jj, ii, d2[ii, jj]))
-    used_a, used_b, pairs = set(), set(), []
-    for k in order:
-        i, j = int(ii[k]), int(jj[k])
-        if i not in used_a and j not in used_b:
-            used_a.add(i)
-            used_b.add(j)
-            pairs.append((i, j))
-    return pairs
+    pairs = _greedy_pairs(np.ascontiguousarray(predicted, dtype=np.float64),
+                          np.ascontiguousarray(variance, dtype=np.float64),
+                          np.ascontiguousarray(measured, dtype=np.float64), GATE_CHI2, GATE_MIN_M, GATE_MAX_M)
+    return [(i, j) for i, j in pairs.tolist()]
+
+
+@njit(cache=True)
+def _greedy_pairs(predicted, variance, measured, chi2, r_min, r_max):
+    """``associate``'s pairs as an int64 (m, 2) array, in the order chosen. Replaces a
+    dozen numpy calls on a few tracks (norm, clip, lexsort, ...) with the same
+    arithmetic: the distance as the square root of dx^2 + dy^2, the candidates in (track,
+    detection) order sorted stably by d^2."""
+    n_t, n_d = predicted.shape[0], measured.shape[0]
+    cand_i = np.empty(n_t * n_d, dtype=np.int64)
+    cand_j = np.empty(n_t * n_d, dtype=np.int64)
+    d2 = np.empty(n_t * n_d)
+    m = 0
+    for i in range(n_t):
+        radius = min(max(np.sqrt(chi2 * variance[i]), r_min), r_max)
+        var = max(variance[i], 1e-9)
+        for j in range(n_d):
+            dx, dy = predicted[i, 0] - measured[j, 0], predicted[i, 1] - measured[j, 1]
+            dist = np.sqrt(dx * dx + dy * dy)
+            if dist <= radius:
+                cand_i[m], cand_j[m], d2[m] = i, j, dist * dist / var
+                m += 1
+    order = np.argsort(d2[:m], kind="mergesort")
+    used_t = np.zeros(n_t, dtype=np.bool_)
+    used_d = np.zeros(n_d, dtype=np.bool_)
+    pairs = np.empty((min(n_t, n_d), 2), dtype=np.int64)
+    k = 0
+    for o in order:
+        i, j = cand_i[o], cand_j[o]
+        if not used_t[i] and not used_d[j]:
+            used_t[i] = used_d[j] = True
+            pairs[k, 0], pairs[k, 1] = i, j
+            k += 1
+    return pairs[:k]

@@ -26,6 +26,7 @@ from vehicle_agent.perception import build_grid, extract_objects
 from vehicle_agent.planning import Obstacle, first_conflict
 from vehicle_agent.scheduler.state import _merge_join
 from vehicle_agent.tracking import registered_velocity
+from vehicle_agent.tracking import associate
 
 
 def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
@@ -50,6 +51,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     del slots
     _warm_conflict(agent)
     _warm_registration()
+    associate(np.zeros((1, 2)), np.ones(1), np.zeros((1, 2)))  # the tracker pairs tracks from an object's second frame
     warm_fusion_kernels()
     _mark_cells(np.zeros((1, 2)), 0, 0, 0.5, 2.0, np.zeros((2, 2), dtype=np.bool_))  # movers' cells: none here
     key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous

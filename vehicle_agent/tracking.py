@@ -101,13 +101,17 @@ def _innovation_var(cov: list[list[float]], dt: float) -> float:
 
 
 def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
-    """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration
+    """P' = F P F^T + Q for one axis, F = [[1, dt], [0, 1]], Q of white acceleration."""
+    a, b, c = _predicted_cov(cov, dt)
+    return np.array([[a, b], [b, c]])
+
+
+def _predicted_cov(cov: np.ndarray, dt: float) -> tuple[float, float, float]:
+    """``_predict_cov``'s P'[0, 0], P'[0, 1] (= P'[1, 0]) and P'[1, 1] as Python floats
     (written out: the 2x2 products cost more in numpy calls than in arithmetic)."""
     q = ACCEL_SIGMA_MPS2**2
-    p00, p01, p11 = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
-    a = p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4
-    b = p01 + dt * p11 + q * dt**3 / 2
-    return np.array([[a, b], [b, p11 + q * dt * dt]])
+    (p00, p01), (_, p11) = cov.tolist()
+    return p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4, p01 + dt * p11 + q * dt**3 / 2, p11 + q * dt * dt
 
 
 @dataclass
@@ -146,18 +150,18 @@ class Tracker:
         2 x 2 numpy statements of the filter compute them (K = P H^T S^-1, (I - K H) P):
         the same values, without a numpy call per element (~20 per track and tick)."""
         dt = max(t_sim_s - tr.t_sim_s, 1e-3)
-        (a, b), (_, c) = _predict_cov(tr.cov, dt).tolist()
+        a, b, c = _predicted_cov(tr.cov, dt)
         (x, y), (vx, vy) = tr.xy.tolist(), tr.filtered_velocity.tolist()
         px, py = x + vx * dt, y + vy * dt  # predicted centroid
-        cx, cy = det.centroid[:2].tolist()
+        cx, cy = det.centroid.tolist()[:2]
         rx, ry = cx - px, cy - py  # residual
         s = a + MEAS_SIGMA_M**2
         g0, g1 = a / s, b / s  # gain = P[:, 0] / S
         x, y = px + g0 * rx, py + g0 * ry
         vx, vy = vx + g1 * rx, vy + g1 * ry
         p00, p01, p10, p11 = a - g0 * a, b - g0 * b, b - g1 * a, c - g1 * b  # P - outer(gain, P[0, :])
-        registered = None
-        if np.hypot(vx, vy) >= STILL_MPS:
+        registered, speed = None, np.hypot(vx, vy)
+        if speed >= STILL_MPS:
             registered = registered_velocity(tr.points_history, det.points_world, t_sim_s, np.array([vx, vy]))
         if registered is not None:  # a velocity measurement too: H = [0, 1] per axis
             s_v = p11 + REGISTERED_SIGMA_MPS**2
@@ -168,11 +172,12 @@ class Tracker:
             vx, vy = vx + g1 * rx, vy + g1 * ry
             # P - outer(gain, P[1, :])
             p00, p01, p10, p11 = p00 - g0 * p10, p01 - g0 * p11, p10 - g1 * p10, p11 - g1 * p11
+            speed = np.hypot(vx, vy)
         tr.xy = np.array([x, y])
         tr.filtered_velocity = np.array([vx, vy])
         tr.cov = np.array([[p00, p01], [p10, p11]])
-        tr.moving = np.hypot(vx, vy) >= STILL_MPS and (tr.moving or registered is not None)
-        tr.velocity = tr.filtered_velocity.copy() if tr.moving else np.zeros(2)
+        tr.moving = speed >= STILL_MPS and (tr.moving or registered is not None)
+        tr.velocity = np.array([vx, vy]) if tr.moving else np.zeros(2)
         tr.t_sim_s = t_sim_s
         tr.detection = det
         tr.points_history.append((t_sim_s, det.points_world))

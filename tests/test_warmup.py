@@ -19,6 +19,7 @@ from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import Obstacle, first_conflict
+from vehicle_agent.tracking import registered_velocity
 from vehicle_agent.warmup import warm_up
 from world_server.scenarios import ScenarioParams
 from world_server.sim import Simulation
@@ -53,6 +54,8 @@ def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
     again = views[1]  # the truck's next frame: its tracker pairs this frame's objects with its tracks
     truck.perceive(decode(encode(Scan(sim.tick + 1, sim.t_sim_s + 0.1, 1, again.pose, again.speed_mps,
                                       again.range_cm)), Scan))
+    seen = max((t.detection.points_world for t in truck_view.tracks), key=len)  # a mover's third frame registers
+    registered_velocity([(0.0, seen), (0.1, seen), (0.2, seen)], seen, 0.3, np.array([10.0, 0.0]))
     truck_msg = decode(encode(truck.control_message(truck_view, scans[1], heard=[0])), ControlMsg)
     ego.dataplane.neighbors.update([truck_msg])
     own = ego.control_message(ego_view, scans[0], heard=[1])

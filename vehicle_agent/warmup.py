@@ -101,6 +101,8 @@ def _warm_registration() -> None:
     grid = np.arange(8, dtype=np.float32) * 0.2
     points = np.stack(np.meshgrid(grid, grid, [0.5], indexing="ij"), axis=-1).reshape(-1, 3)
     registered_velocity([(0.0, points), (0.1, points), (0.2, points)], points, 0.3, np.array([10.0, 0.0]))
+    points = points.astype(np.float32)  # as detected (the lines above register float64 points)
+    registered_velocity([(0.0, points), (0.1, points), (0.2, points)], points, 0.3, np.array([10.0, 0.0]))
 
 
 def _as_received(msg):

@@ -313,19 +313,22 @@ def _objects(pts: np.ndarray, pts32: np.ndarray, bounds: np.ndarray, grid: Grid,
     the labelled cells' flat indices in grid order."""
     cells_ij, cell_bounds = _cells_by_label(cells, labels.ravel(), k, grid.state.shape[0], grid.i0, grid.j0)
     mean, yaw, u_lo, u_hi, v_lo, v_hi, z_mean = _object_stats(pts, bounds)
-    counts = np.diff(bounds)
-    nonempty = counts > 0
-    mean, yaw, z_mean = mean[nonempty], yaw[nonempty], z_mean[nonempty]
-    u_lo, u_hi, v_lo, v_hi = u_lo[nonempty], u_hi[nonempty], v_lo[nonempty], v_hi[nonempty]
+    nonempty = bounds[1:] > bounds[:-1]
+    kept = np.flatnonzero(nonempty).tolist()
+    if len(kept) < k:
+        mean, yaw, z_mean = mean[nonempty], yaw[nonempty], z_mean[nonempty]
+        u_lo, u_hi, v_lo, v_hi = u_lo[nonempty], u_hi[nonempty], v_lo[nonempty], v_hi[nonempty]
     cy, sy = np.cos(yaw), np.sin(yaw)
-    center = (mean + np.stack([cy, sy], 1) * ((u_hi + u_lo) / 2)[:, None]
-              + np.stack([-sy, cy], 1) * ((v_hi + v_lo) / 2)[:, None])
-    centroid = np.column_stack([center, z_mean])
+    half_u, half_v = (u_hi + u_lo) / 2, (v_hi + v_lo) / 2
+    centroid = np.empty((len(kept), 3))  # the box's centre: the mean moved along and across the axis
+    centroid[:, 0] = mean[:, 0] + cy * half_u + -sy * half_v
+    centroid[:, 1] = mean[:, 1] + sy * half_u + cy * half_v
+    centroid[:, 2] = z_mean
     length, width = (u_hi - u_lo).tolist(), (v_hi - v_lo).tolist()
     yaws = yaw.tolist()
     bounds_l, cell_bounds_l = bounds.tolist(), cell_bounds.tolist()
     objects = []  # each object's points and cells are slices of pts32 and cells_ij
-    for o, lab in enumerate(np.flatnonzero(nonempty).tolist()):
+    for o, lab in enumerate(kept):
         objects.append(DetectedObject(pts32[bounds_l[lab]:bounds_l[lab + 1]],
                                       cells_ij[cell_bounds_l[lab]:cell_bounds_l[lab + 1]],
                                       centroid[o], yaws[o], length[o], width[o]))

@@ -441,20 +441,29 @@ def _rays_by_label(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, rays, f
     out = np.empty((bounds[k], 3))
     out32 = np.empty((bounds[k], 3), dtype=np.float32)
     c, s = np.cos(yaw), np.sin(yaw)
+    # consecutive rays mostly share a label and an azimuth: the label's next slot and the
+    # azimuth's direction are kept across them, not stored and loaded again per ray
+    cur, p, last_i = 0, 0, -1
+    wx = wy = 0.0
     for t in range(rays.shape[0]):
         lab = flat_labels[rays[t, 2]]
         if lab == 0:
             continue
+        if lab != cur:
+            if cur > 0:
+                fill[cur - 1] = p
+            cur, p = lab, fill[lab - 1]
         i, b = rays[t, 0], rays[t, 1]
-        wx = c * cos_az[i] - s * sin_az[i]
-        wy = s * cos_az[i] + c * sin_az[i]
+        if i != last_i:
+            wx = c * cos_az[i] - s * sin_az[i]
+            wy = s * cos_az[i] + c * sin_az[i]
+            last_i = i
         d = range_cm[i, b] * 0.01
-        p = fill[lab - 1]
         out[p, 0] = x + d * wx
         out[p, 1] = y + d * wy
         out[p, 2] = mount_m + d * tan_el[b]
         out32[p, 0], out32[p, 1], out32[p, 2] = out[p, 0], out[p, 1], out[p, 2]  # as numpy's astype rounds
-        fill[lab - 1] += 1
+        p += 1
     return out, out32, bounds
 
 

@@ -152,19 +152,25 @@ def label_components(mask, reach):
 
 
 @njit(cache=True)
-def _components(state, drivable, reach):
-    """``label_components`` of the ABOVE cells on the drivable area, with their flat
-    indices in grid order: (labels, k, cells). Replaces numpy's mask and a scan of the
-    whole grid for seeds (labels are numbered in the same order: by lowest cell)."""
-    ny, nx = state.shape
+def _above_cells(state, drivable):
+    """The flat indices, in grid order, of the ABOVE cells on the drivable area."""
     flat_state, flat_drivable = state.ravel(), drivable.ravel()
     m = 0
-    cells = np.empty(ny * nx, dtype=np.int64)
-    for q in range(ny * nx):
+    cells = np.empty(len(flat_state), dtype=np.int64)
+    for q in range(len(flat_state)):
         if flat_state[q] == ABOVE and flat_drivable[q]:
             cells[m] = q
             m += 1
-    cells = cells[:m]
+    return cells[:m]
+
+
+@njit(cache=True)
+def _components(state, drivable, reach, cells):
+    """``label_components`` of the ABOVE cells on the drivable area, ``cells`` (their
+    flat indices in grid order): (labels, k). Replaces numpy's mask and a scan of the
+    whole grid for seeds (labels are numbered in the same order: by lowest cell)."""
+    ny, nx = state.shape
+    m = len(cells)
     labels = np.zeros((ny, nx), dtype=np.int32)
     stack = np.empty(m, dtype=np.int64)
     k = 0
@@ -187,7 +193,7 @@ def _components(state, drivable, reach):
                         labels[yy, xx] = k
                         stack[top] = yy * nx + xx
                         top += 1
-    return labels, k, cells
+    return labels, k
 
 
 class LatticeRaster:
@@ -295,10 +301,14 @@ def extract_objects(world: np.ndarray, grid: Grid, cell_idx: np.ndarray,
     return _objects(pts, pts.astype(np.float32), bounds, grid, labels, k, cells)
 
 
-def _labels(grid: Grid, sensor_xy: tuple[float, float] | None) -> tuple[np.ndarray, int, np.ndarray]:
+def _labels(grid: Grid, sensor_xy: tuple[float, float] | None,
+            cells: np.ndarray | None = None) -> tuple[np.ndarray, int, np.ndarray]:
     """The grid's objects as labelled cells (``extract_objects``): labels 1..k, k, and
-    the flat indices of the labelled cells in grid order."""
-    labels, k, cells = _components(grid.state, grid.drivable, grid.spec.reach_cells)
+    the flat indices of the labelled cells in grid order (``cells``, if known:
+    ``_above_cells``)."""
+    if cells is None:
+        cells = _above_cells(grid.state, grid.drivable)
+    labels, k = _components(grid.state, grid.drivable, grid.spec.reach_cells, cells)
     if sensor_xy is not None and k > 1:
         relabel, k = _shadow_relabel(labels, k, cells, grid.i0, grid.j0, grid.spec.cell_m, grid.state,
                                      float(sensor_xy[0]), float(sensor_xy[1]), SHADOW_MERGE_M)
@@ -341,9 +351,10 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     range image: the same grid, without the world points of every ray in memory (at 40
     vehicles 110 000 rays of 24 bytes, read three times). ``tables``: the LiDAR's cos
     and sin of each azimuth and tan of each elevation (``frames.ray_tables``). Returns
-    the grid and, for ``scan_objects``, the rays that can belong to an object: int32
+    the grid and, for ``scan_objects``: the rays that can belong to an object, int32
     (m, 3) rows (azimuth, beam, flat cell) of each return above the ground in a
-    drivable cell of the grid, in ray order (about a fifth of the rays)."""
+    drivable cell of the grid, in ray order (about a fifth of the rays); and those
+    cells (``_above_cells``), found as they turn ABOVE rather than by a scan of the grid."""
     x, y, yaw = pose_xyyaw
     n = spec.cells
     i0 = int(np.floor(x / spec.cell_m)) - n // 2
@@ -351,18 +362,20 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     state = np.zeros(n * n, dtype=np.uint8)
     window = drivable.window(i0, j0, n)
     rays = np.empty((range_cm.size, 3), dtype=np.int32)  # pages past the m rows written are never touched
+    cells = np.empty(n * n, dtype=np.int64)  # likewise
     cos_az, sin_az, tan_el = tables
-    m = _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, spec.cell_m,
-                  exact_inverse(spec.cell_m), n, spec.ground_clear_m, window.ravel(), state, rays)
-    return Grid(spec, i0, j0, state.reshape(n, n), window), rays[:m]
+    m, m_cells = _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, spec.cell_m,
+                           exact_inverse(spec.cell_m), n, spec.ground_clear_m, window.ravel(), state, rays, cells)
+    return Grid(spec, i0, j0, state.reshape(n, n), window), (rays[:m], np.sort(cells[:m_cells]))
 
 
 def scan_objects(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.ndarray], pose_xyyaw: tuple,
-                 mount_m: float, grid: Grid, rays: np.ndarray) -> list[DetectedObject]:
+                 mount_m: float, grid: Grid, binned: tuple[np.ndarray, np.ndarray]) -> list[DetectedObject]:
     """``extract_objects`` of the scan ``scan_grid`` binned (the sensor at the pose): the
-    same objects, only ``rays`` (``scan_grid``'s) placed in the world."""
+    same objects, only the rays of ``binned`` (``scan_grid``'s) placed in the world."""
     x, y, yaw = pose_xyyaw
-    labels, k, cells = _labels(grid, (x, y))
+    rays, cells = binned
+    labels, k, cells = _labels(grid, (x, y), cells)
     if k == 0:
         return []
     cos_az, sin_az, tan_el = tables
@@ -372,10 +385,11 @@ def scan_objects(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.
 
 @njit(cache=True)
 def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell, inv, n, clear, drivable, state,
-              rays):
+              rays, cells_above):
     """``_bin`` of the rays' world points (``frames._ranges_to_world``'s arithmetic):
     classify cells; ``rays[:m]`` gets (azimuth, beam, flat cell) of each ray with a
-    return above the ground in a ``drivable`` cell of the grid, in ray order; returns m.
+    return above the ground in a ``drivable`` cell of the grid, in ray order, and
+    ``cells_above[:m_cells]`` each such cell once (unordered); returns (m, m_cells).
     ``inv``: ``exact_inverse(cell)``. Replaces a per-ray int32 cell (every ray written,
     then every ray read twice): only these rays can be in an object. Per azimuth, the
     cells and heights of its beams first, in a loop without branches (the compiler
@@ -384,7 +398,7 @@ def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell
     n_beams = range_cm.shape[1]
     cells = np.empty(n_beams, dtype=np.int64)  # -1: no return, or outside the grid
     above = np.empty(n_beams, dtype=np.bool_)
-    m = 0
+    m = m_cells = 0
     for i in range(range_cm.shape[0]):
         wx = c * cos_az[i] - s * sin_az[i]
         wy = s * cos_az[i] + c * sin_az[i]
@@ -394,13 +408,16 @@ def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell
             if q < 0:
                 continue
             if above[b]:
-                state[q] = 2
                 if drivable[q]:
                     rays[m, 0], rays[m, 1], rays[m, 2] = i, b, q
                     m += 1
+                    if state[q] != 2:
+                        cells_above[m_cells] = q
+                        m_cells += 1
+                state[q] = 2
             elif state[q] == 0:
                 state[q] = 1
-    return m
+    return m, m_cells
 
 
 @njit(cache=True)

@@ -495,8 +495,14 @@ def test_fuse_matches_the_numpy_formulation_on_random_objects():
         for k in range(int(rng.integers(1, 12))):
             m = int(rng.integers(1, 200))
             pts = np.column_stack([cx + rng.uniform(-5, 45, m), cy + rng.uniform(-5, 45, m), rng.uniform(-0.5, 2, m)])
+            if k % 3 == 1:  # points in a row close together, many in the cell of the one before
+                pts = np.repeat(pts, 3, axis=0) + rng.normal(0.0, 0.1, (3 * m, 3))
             if k == 0:
                 pts[0] = [np.nan, cy + 1.0, 1.0]  # a corrupt point is ignored, not placed
+            if k % 3 == 2:  # one point, in an ABOVE cell where the object before ends: it is on_own
+                r, c = np.argwhere(state == ABOVE)[k]
+                pts = np.array([[(c + grid.i0 + 0.5) * spec.cell_m, (r + grid.j0 + 0.5) * spec.cell_m, 1.0]])
+                shared[-1].points_world[-1] = pts[0]
             shared.append(SharedObject((k, 0), pts, np.zeros(2), 0.0, True))
         got = fuse(grid, SharedBatch.of(shared))
         state_ref, received_ref, same_ref = reference(grid, [o if o.key[0] else

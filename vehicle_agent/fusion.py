@@ -117,6 +117,7 @@ class ReceivedStore:
     t_sim_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # capture time
     velocity_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # float64
     counts: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    bounds: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # each object's min x, max x, min y, max y
     starts: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # rows in pool
     pool: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # float64, world, at capture time
     used: int = 0  # rows of pool written since it was last compacted
@@ -168,9 +169,10 @@ class ReceivedStore:
             starts[stay] = _starts(self.counts[stay])
             self.used = live
         pose = batch.sender_pose[win]
-        _place(self.pool, self.used, batch.points_sensor, _starts(batch.counts)[win], counts,
-               np.ascontiguousarray(pose), np.cos(pose[:, 2]), np.sin(pose[:, 2]),
-               batch.mount_height_m[win].astype(batch.points_sensor.dtype))
+        bounds = _place(self.pool, self.used, batch.points_sensor, _starts(batch.counts)[win], counts,
+                        np.ascontiguousarray(pose), np.cos(pose[:, 2]), np.sin(pose[:, 2]),
+                        batch.mount_height_m[win].astype(batch.points_sensor.dtype))
+        self.bounds = np.concatenate([self.bounds, bounds])[order]
         self.starts = np.concatenate([starts, self.used + _starts(counts)])[order]
         self.used += need
         self.key = np.concatenate([self.key, key[win]])[order]
@@ -185,7 +187,7 @@ class ReceivedStore:
         alive = ~(age > self.max_age_s)
         if not alive.all():  # their points stay in the pool until it is compacted
             self.key, self.t_sim_s, self.velocity_xy = self.key[alive], self.t_sim_s[alive], self.velocity_xy[alive]
-            self.counts, self.starts = self.counts[alive], self.starts[alive]
+            self.counts, self.starts, self.bounds = self.counts[alive], self.starts[alive], self.bounds[alive]
             age = age[alive]
         return age
 
@@ -288,15 +290,28 @@ def _place(out, at, points, starts, counts, pose, cos_yaw, sin_yaw, mount):
     """``placed_in_world`` of the segments ``starts[k]:starts[k] + counts[k]`` of the
     sensor-frame ``points``, each with its sender's pose (x, y, yaw), cos and sin of its
     yaw and mount height (in the points' dtype), one after the other into the rows of
-    ``out`` from ``at``: the same sums."""
+    ``out`` from ``at``: the same sums. Returns each segment's bounds in x and y (min x,
+    max x, min y, max y; NaNs left out, an empty or all-NaN segment inf, -inf)."""
+    bounds = np.empty((len(counts), 4))
     q = at
     for k in range(len(counts)):
         x, y, c, s, h = pose[k, 0], pose[k, 1], cos_yaw[k], sin_yaw[k], mount[k]
+        x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
         for i in range(starts[k], starts[k] + counts[k]):
-            out[q, 0] = x + c * points[i, 0] - s * points[i, 1]
-            out[q, 1] = y + s * points[i, 0] + c * points[i, 1]
-            out[q, 2] = points[i, 2] + h
+            wx = x + c * points[i, 0] - s * points[i, 1]
+            wy = y + s * points[i, 0] + c * points[i, 1]
+            out[q, 0], out[q, 1], out[q, 2] = wx, wy, points[i, 2] + h
+            if wx < x_lo:  # a NaN compares false: left out
+                x_lo = wx
+            if wx > x_hi:
+                x_hi = wx
+            if wy < y_lo:
+                y_lo = wy
+            if wy > y_hi:
+                y_hi = wy
             q += 1
+        bounds[k, 0], bounds[k, 1], bounds[k, 2], bounds[k, 3] = x_lo, x_hi, y_lo, y_hi
+    return bounds
 
 
 @njit(cache=True)
@@ -411,6 +426,13 @@ def _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_
 
 
 @njit(cache=True)
+def _clear(lo_x, hi_x, lo_y, hi_y, x_lo, x_hi, y_lo, y_hi):
+    """The box [lo_x, hi_x] x [lo_y, hi_y] lies wholly on one side of [x_lo, x_hi] x
+    [y_lo, y_hi] (False where a bound is NaN)."""
+    return hi_x < x_lo or lo_x > x_hi or hi_y < y_lo or lo_y > y_hi
+
+
+@njit(cache=True)
 def _mark_mine(pts, counts, shift, px, py, cos_yaw, sin_yaw, half_length, half_width, box, mine, hits):
     """``_on_bodies`` of every point where it is placed and where it was captured (its
     object's ``shift`` back), in one pass: sets ``mine`` and counts each object's
@@ -464,7 +486,7 @@ def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np
         box = (np.inf, -np.inf, np.inf, -np.inf)
     is_fresh = _member(store.key, _key(*fresh))
     points, kept, kept_counts, merged = _shared_now(
-        store.pool, store.starts, store.counts, shift, is_fresh, px, py, np.cos(yaw), np.sin(yaw), half_length,
+        store.pool, store.starts, store.counts, store.bounds, shift, is_fresh, px, py, np.cos(yaw), np.sin(yaw), half_length,
         half_width, *box, grid.spec.cell_m, exact_inverse(grid.spec.cell_m), grid.i0, grid.j0, grid.state, GROUND,
         free_share, MERGED_SHARE, SELF_SHARE)
     if merged.any():
@@ -475,7 +497,7 @@ def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np
 
 
 @njit(cache=True)
-def _shared_now(pool, starts, counts, shift, fresh, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi,
+def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi,
                 y_lo, y_hi, cell_m, inv, i0, j0, state, ground, free_share, merged_share, self_share):
     """Object by object, the held points (``starts``/``counts`` rows of ``pool``)
     placed at their object's ``shift``: ``not_me``'s test of each point where it is
@@ -485,6 +507,11 @@ def _shared_now(pool, starts, counts, shift, fresh, px, py, cos_yaw, sin_yaw, ha
     of its other points in the grid and on ``ground`` (``inv``: ``exact_inverse(cell_m)``);
     the kept objects' other points, placed, one object after the other. The same sums
     and tests as ``_moved``, ``_mark_mine``, ``_compact`` and ``_on_ground`` in turn.
+
+    An object whose ``bounds`` (min x, max x, min y, max y of its held points), placed
+    and taken back the same way, lie clear of the box has no point on us and is not
+    tested point by point: rounding is monotonic, so no point lies beyond its bounds
+    after the same sums (NaN bounds are never clear). Most objects are far from us.
 
     Returns the points, which objects are kept, each object's points not on us, and
     which objects merged us with something. Replaces three passes over the whole stack
@@ -501,7 +528,10 @@ def _shared_now(pool, starts, counts, shift, fresh, px, py, cos_yaw, sin_yaw, ha
         start, count = starts[k], counts[k]
         sx, sy = shift[k, 0], shift[k, 1]
         hits = 0
-        for i in range(count):
+        lo_x, hi_x, lo_y, hi_y = bounds[k, 0] + sx, bounds[k, 1] + sx, bounds[k, 2] + sy, bounds[k, 3] + sy
+        tested = not (_clear(lo_x, hi_x, lo_y, hi_y, x_lo, x_hi, y_lo, y_hi) and
+                      _clear(lo_x - sx, hi_x - sx, lo_y - sy, hi_y - sy, x_lo, x_hi, y_lo, y_hi))
+        for i in range(count if tested else 0):
             x, y = pool[start + i, 0] + sx, pool[start + i, 1] + sy
             x0, y0 = x - sx, y - sy  # where it was captured
             mine[i] = _on_a_body(x, y, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi, y_lo, y_hi) or \
@@ -513,7 +543,7 @@ def _shared_now(pool, starts, counts, shift, fresh, px, py, cos_yaw, sin_yaw, ha
         if keep and not fresh[k] and count - hits > 0:  # stale: gone where our LiDAR sees bare ground
             inside = on_ground = 0
             for i in range(count):
-                if mine[i]:
+                if tested and mine[i]:
                     continue
                 x, y = pool[start + i, 0] + sx, pool[start + i, 1] + sy
                 if back:
@@ -532,7 +562,7 @@ def _shared_now(pool, starts, counts, shift, fresh, px, py, cos_yaw, sin_yaw, ha
             keep = not (inside > 0 and on_ground >= free_share * inside)
         if keep:
             for i in range(count):
-                if mine[i]:
+                if tested and mine[i]:
                     continue
                 x, y = pool[start + i, 0] + sx, pool[start + i, 1] + sy
                 if back:
@@ -635,6 +665,6 @@ def warm_kernels() -> None:
                np.zeros(4), np.zeros(2, dtype=np.bool_), np.zeros(2))
     _on_ground(pts, counts, flags, 0.5, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND)
     x_lo = np.float64(0.0)  # the box's bounds come as numpy floats (from ``np.min``)
-    _shared_now(pts, counts - 1, counts, np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1), np.ones(1), np.zeros(1),
+    _shared_now(pts, counts - 1, counts, np.zeros((2, 4)), np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1), np.ones(1), np.zeros(1),
                 1.0, 1.0, x_lo, x_lo, x_lo, x_lo, 0.5, 2.0, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND, 0.5,
                 MERGED_SHARE, SELF_SHARE)

@@ -650,6 +650,27 @@ def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed()
     assert len(empty) == 0 and n_bad == 0 and empty.points_sensor.shape == (0, 3)
 
 
+def test_encoding_a_senders_objects_at_once_equals_encoding_each():
+    from vehicle_agent.payload import encode_objects
+
+    rng = np.random.default_rng(12)
+    pose = Pose(*rng.normal(0, 50, 2), float(rng.uniform(-np.pi, np.pi)))
+    counts = np.array([5, 0, 1, 40, 17], dtype=np.int64)
+    points = rng.normal(0, 4, (int(counts.sum()), 3)).astype(np.float32)
+    centroids = rng.normal(0, 4, (len(counts), 3)).astype(np.float32)
+    velocities = rng.normal(0, 5, (len(counts), 2)).astype(np.float32)
+    ids = [int(i) for i in rng.integers(0, 1 << 31, len(counts))]
+    got = encode_objects(9, 33, 3.3, pose, 1.9, ids, centroids, velocities, points, counts)
+    ends = np.cumsum(counts)
+    assert got == [encode_object(ObjectPayload(9, oid, 33, 3.3, pose, 1.9, centroids[k], velocities[k],
+                                               points[ends[k] - counts[k]:ends[k]]))
+                   for k, oid in enumerate(ids)]
+    far = points.copy()
+    far[ends[3] - 1, 0] = 400.0  # one object spans more than 327 m
+    with pytest.raises(ValueError):
+        encode_objects(9, 33, 3.3, pose, 1.9, ids, centroids, velocities, far, counts)
+
+
 class _DictStore:
     """The received-object store one dict entry per object, as it was before the store
     became arrays: the slower reference."""

@@ -110,7 +110,8 @@ class ReceivedStore:
     rows ``starts[k]:starts[k] + counts[k]``: a reception is placed once, after the
     rows written so far, and the held rows are compacted only when the pool is full
     (restacking all ~30 000 points in key order at every reception and again at every
-    expiry was a third of fusion's time)."""
+    expiry was a third of fusion's time). ``bounds`` lets ``shared_now`` pass over the
+    objects far from our body without testing their points."""
 
     max_age_s: float = MAX_AGE_S
     key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # _key(sender, object id)
@@ -404,8 +405,8 @@ def not_me(shared: SharedBatch, poses: list, length_m: float, width_m: float) ->
         # was captured (measured: a parked car's view merged the truck with the passing
         # ego; the truck, "moving" at the ego's speed, blocked the ego's way back)
         points = _moved(pts, counts, np.where(merged[:, None], shift, 0.0), -1.0)
-        shared = SharedBatch(shared.sender, shared.object_id, points, counts, np.where(merged[:, None], 0.0, shared.velocity),
-                             shared.age_s, shared.fresh)
+        shared = SharedBatch(shared.sender, shared.object_id, points, counts,
+                             np.where(merged[:, None], 0.0, shared.velocity), shared.age_s, shared.fresh)
     return shared.keep((counts > 0) & (share < SELF_SHARE), ~mine)
 
 
@@ -486,9 +487,9 @@ def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np
         box = (np.inf, -np.inf, np.inf, -np.inf)
     is_fresh = _member(store.key, _key(*fresh))
     points, kept, kept_counts, merged = _shared_now(
-        store.pool, store.starts, store.counts, store.bounds, shift, is_fresh, px, py, np.cos(yaw), np.sin(yaw), half_length,
-        half_width, *box, grid.spec.cell_m, exact_inverse(grid.spec.cell_m), grid.i0, grid.j0, grid.state, GROUND,
-        free_share, MERGED_SHARE, SELF_SHARE)
+        store.pool, store.starts, store.counts, store.bounds, shift, is_fresh, px, py, np.cos(yaw), np.sin(yaw),
+        half_length, half_width, *box, grid.spec.cell_m, exact_inverse(grid.spec.cell_m), grid.i0, grid.j0,
+        grid.state, GROUND, free_share, MERGED_SHARE, SELF_SHARE)
     if merged.any():
         velocity = np.where(merged[:, None], 0.0, velocity)
     key = store.key[kept]
@@ -497,8 +498,8 @@ def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np
 
 
 @njit(cache=True)
-def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin_yaw, half_length, half_width, x_lo, x_hi,
-                y_lo, y_hi, cell_m, inv, i0, j0, state, ground, free_share, merged_share, self_share):
+def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin_yaw, half_length, half_width,
+                x_lo, x_hi, y_lo, y_hi, cell_m, inv, i0, j0, state, ground, free_share, merged_share, self_share):
     """Object by object, the held points (``starts``/``counts`` rows of ``pool``)
     placed at their object's ``shift``: ``not_me``'s test of each point where it is
     placed and where it was captured against our bodies (``_on_a_body``, the box as four
@@ -665,6 +666,6 @@ def warm_kernels() -> None:
                np.zeros(4), np.zeros(2, dtype=np.bool_), np.zeros(2))
     _on_ground(pts, counts, flags, 0.5, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND)
     x_lo = np.float64(0.0)  # the box's bounds come as numpy floats (from ``np.min``)
-    _shared_now(pts, counts - 1, counts, np.zeros((2, 4)), np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1), np.ones(1), np.zeros(1),
-                1.0, 1.0, x_lo, x_lo, x_lo, x_lo, 0.5, 2.0, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND, 0.5,
-                MERGED_SHARE, SELF_SHARE)
+    _shared_now(pts, counts - 1, counts, np.zeros((2, 4)), np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1),
+                np.ones(1), np.zeros(1), 1.0, 1.0, x_lo, x_lo, x_lo, x_lo, 0.5, 2.0, 0, 0,
+                np.zeros((2, 2), dtype=np.uint8), GROUND, 0.5, MERGED_SHARE, SELF_SHARE)

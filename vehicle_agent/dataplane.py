@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -24,6 +24,7 @@ from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid
                                       scan_grid, scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
 from vehicle_agent.tracking import Track, Tracker
+from vehicle_agent.agreement import HeardControl
 
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
@@ -56,12 +57,13 @@ class NeighborState:
 
 @dataclass
 class NeighborTable:
-    """Latest control message per vehicle; stale ones are aged (paper 4.1, loss compensation)."""
+    """Latest control message per vehicle (whole, or as the ``HeardControl`` that carries
+    its motion); stale ones are aged (paper 4.1, loss compensation)."""
 
     max_age_s: float = 2.0
-    last: dict[int, ControlMsg] = field(default_factory=dict)
+    last: dict[int, ControlMsg | HeardControl] = field(default_factory=dict)
 
-    def update(self, msgs: list[ControlMsg]) -> None:
+    def update(self, msgs: Sequence[ControlMsg | HeardControl]) -> None:
         for m in msgs:
             prev = self.last.get(m.vid)
             if prev is None or m.tick >= prev.tick:

@@ -740,6 +740,35 @@ def test_the_store_keeps_the_same_objects_as_one_dict_entry_per_object():
         np.testing.assert_array_equal(got.points, np.concatenate([w[1] for w in want]) if want else np.zeros((0, 3)))
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_the_newest_receptions_and_the_merged_keys_equal_their_lexsort_formulations(seed):
+    """_newest and _merge_rows against the numpy statements they replaced: repeated keys,
+    equal and NaN capture times (np.lexsort puts NaN last), held copies newer, older and
+    as old."""
+    from vehicle_agent.fusion import _merge_rows, _newest
+
+    rng = np.random.default_rng(seed)
+    held_key = np.unique(rng.integers(0, 30, int(rng.integers(0, 20))))
+    held_t = rng.choice([0.0, 0.1, 0.2, np.nan], len(held_key))
+    key = rng.integers(0, 30, int(rng.integers(1, 40)))
+    t = rng.choice([0.0, 0.1, 0.2, 0.3, np.nan], len(key))
+    order = np.lexsort((np.arange(len(key)), t, key))
+    last = np.ones(len(order), dtype=bool)
+    last[:-1] = key[order][1:] != key[order][:-1]
+    win = order[last]
+    at = np.minimum(np.searchsorted(held_key, key[win]), max(len(held_key) - 1, 0))
+    held = np.where(len(held_key) and (held_key[at] == key[win]), at, -1) if len(held_key) else np.full(len(win), -1)
+    newer = held < 0
+    newer[~newer] = t[win][~newer] >= held_t[held[~newer]]
+    want = win[newer]
+    got = _newest(held_key, held_t, key, t)
+    assert got.tolist() == want.tolist()
+    stacked = np.concatenate([held_key[~np.isin(held_key, key[got])], key[got]])
+    rows = _merge_rows(held_key, key[got])
+    assert np.concatenate([held_key, key[got]])[rows].tolist() == np.sort(stacked).tolist()
+
+
 def test_not_me_and_not_contradicted_match_their_numpy_formulations():
     """The single-pass kernels against the whole-array numpy statements they replaced,
     on moving, aged objects near a short history of poses (so points are tested where

@@ -523,8 +523,14 @@ def test_fuse_matches_the_numpy_formulation_on_random_objects():
         for k in range(int(rng.integers(1, 12))):
             m = int(rng.integers(1, 200))
             pts = np.column_stack([cx + rng.uniform(-5, 45, m), cy + rng.uniform(-5, 45, m), rng.uniform(-0.5, 2, m)])
+            if k % 3 == 1:  # points in a row close together, many in the cell of the one before
+                pts = np.repeat(pts, 3, axis=0) + rng.normal(0.0, 0.1, (3 * m, 3))
             if k == 0:
                 pts[0] = [np.nan, cy + 1.0, 1.0]  # a corrupt point is ignored, not placed
+            if k % 3 == 2:  # one point, in an ABOVE cell where the object before ends: it is on_own
+                r, c = np.argwhere(state == ABOVE)[k]
+                pts = np.array([[(c + grid.i0 + 0.5) * spec.cell_m, (r + grid.j0 + 0.5) * spec.cell_m, 1.0]])
+                shared[-1].points_world[-1] = pts[0]
             shared.append(SharedObject((k, 0), pts, np.zeros(2), 0.0, True))
         got = fuse(grid, SharedBatch.of(shared))
         state_ref, received_ref, same_ref = reference(grid, [o if o.key[0] else
@@ -672,6 +678,27 @@ def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed()
     assert len(empty) == 0 and n_bad == 0 and empty.points_sensor.shape == (0, 3)
 
 
+def test_encoding_a_senders_objects_at_once_equals_encoding_each():
+    from vehicle_agent.payload import encode_objects
+
+    rng = np.random.default_rng(12)
+    pose = Pose(*rng.normal(0, 50, 2), float(rng.uniform(-np.pi, np.pi)))
+    counts = np.array([5, 0, 1, 40, 17], dtype=np.int64)
+    points = rng.normal(0, 4, (int(counts.sum()), 3)).astype(np.float32)
+    centroids = rng.normal(0, 4, (len(counts), 3)).astype(np.float32)
+    velocities = rng.normal(0, 5, (len(counts), 2)).astype(np.float32)
+    ids = [int(i) for i in rng.integers(0, 1 << 31, len(counts))]
+    got = encode_objects(9, 33, 3.3, pose, 1.9, ids, centroids, velocities, points, counts)
+    ends = np.cumsum(counts)
+    assert got == [encode_object(ObjectPayload(9, oid, 33, 3.3, pose, 1.9, centroids[k], velocities[k],
+                                               points[ends[k] - counts[k]:ends[k]]))
+                   for k, oid in enumerate(ids)]
+    far = points.copy()
+    far[ends[3] - 1, 0] = 400.0  # one object spans more than 327 m
+    with pytest.raises(ValueError):
+        encode_objects(9, 33, 3.3, pose, 1.9, ids, centroids, velocities, far, counts)
+
+
 class _DictStore:
     """The received-object store one dict entry per object, as it was before the store
     became arrays: the slower reference."""
@@ -739,6 +766,35 @@ def test_the_store_keeps_the_same_objects_as_one_dict_entry_per_object():
         np.testing.assert_array_equal(got.velocity, np.array([w[2] for w in want]).reshape(-1, 2))
         assert got.counts.tolist() == [len(w[1]) for w in want]
         np.testing.assert_array_equal(got.points, np.concatenate([w[1] for w in want]) if want else np.zeros((0, 3)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_the_newest_receptions_and_the_merged_keys_equal_their_lexsort_formulations(seed):
+    """_newest and _merge_rows against the numpy statements they replaced: repeated keys,
+    equal and NaN capture times (np.lexsort puts NaN last), held copies newer, older and
+    as old."""
+    from vehicle_agent.fusion import _merge_rows, _newest
+
+    rng = np.random.default_rng(seed)
+    held_key = np.unique(rng.integers(0, 30, int(rng.integers(0, 20))))
+    held_t = rng.choice([0.0, 0.1, 0.2, np.nan], len(held_key))
+    key = rng.integers(0, 30, int(rng.integers(1, 40)))
+    t = rng.choice([0.0, 0.1, 0.2, 0.3, np.nan], len(key))
+    order = np.lexsort((np.arange(len(key)), t, key))
+    last = np.ones(len(order), dtype=bool)
+    last[:-1] = key[order][1:] != key[order][:-1]
+    win = order[last]
+    at = np.minimum(np.searchsorted(held_key, key[win]), max(len(held_key) - 1, 0))
+    held = np.where(len(held_key) and (held_key[at] == key[win]), at, -1) if len(held_key) else np.full(len(win), -1)
+    newer = held < 0
+    newer[~newer] = t[win][~newer] >= held_t[held[~newer]]
+    want = win[newer]
+    got = _newest(held_key, held_t, key, t)
+    assert got.tolist() == want.tolist()
+    stacked = np.concatenate([held_key[~np.isin(held_key, key[got])], key[got]])
+    rows = _merge_rows(held_key, key[got])
+    assert np.concatenate([held_key, key[got]])[rows].tolist() == np.sort(stacked).tolist()
 
 
 def test_not_me_and_not_contradicted_match_their_numpy_formulations():

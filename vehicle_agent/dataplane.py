@@ -19,7 +19,7 @@ from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse, shared_now
-from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
+from vehicle_agent.payload import decode_objects, encode_objects, payload_size
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects,
                                       scan_grid, scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
@@ -206,19 +206,23 @@ class DataPlane:
     # ----------------------------------------------------------------- share
 
     def payloads(self, view: View, object_ids: list[int]) -> dict[int, bytes]:
-        """The encoded point clouds of the given tracked objects."""
+        """The encoded point clouds of the given tracked objects (``encode_object`` of
+        each, all of their points taken to our sensor frame at once)."""
         with self._timed("encoding"):
+            if not object_ids:
+                return {}
             by_id = {t.track_id: t for t in view.tracks}
-            out = {}
-            for oid in object_ids:
-                t = by_id[oid]
-                pts = world_to_sensor(t.detection.points_world.astype(np.float64), view.pose, self.mount_m)
-                centroid = world_to_sensor(np.array([[t.xy[0], t.xy[1], t.detection.centroid[2]]]), view.pose,
-                                           self.mount_m)[0]
-                out[oid] = encode_object(ObjectPayload(self.mission.vid, oid, view.tick, view.t_sim_s, view.pose,
-                                                       self.mount_m, centroid.astype(np.float32),
-                                                       t.velocity.astype(np.float32), pts.astype(np.float32)))
-        return out
+            tracks = [by_id[oid] for oid in object_ids]
+            world = np.concatenate([t.detection.points_world for t in tracks]).astype(np.float64)
+            pts = world_to_sensor(world, view.pose, self.mount_m)
+            centroids = world_to_sensor(np.array([[t.xy[0], t.xy[1], t.detection.centroid[2]] for t in tracks]),
+                                        view.pose, self.mount_m)
+            encoded = encode_objects(self.mission.vid, view.tick, view.t_sim_s, view.pose, self.mount_m, object_ids,
+                                     centroids.astype(np.float32),
+                                     np.array([t.velocity for t in tracks]).astype(np.float32),
+                                     pts.astype(np.float32),
+                                     np.array([len(t.detection.points_world) for t in tracks], dtype=np.int64))
+        return dict(zip(object_ids, encoded))
 
     def fuse(self, view: View, payloads: list[bytes]) -> tuple[FusedGrid, int]:
         """Merge this interval's receptions (and carried-forward older ones) into the grid.

@@ -20,6 +20,7 @@ from vehicle_agent.agent import Agent, _mark_cells
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
+from vehicle_agent.payload import warm_kernels as warm_payload_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.perception import build_grid, extract_objects
@@ -53,6 +54,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     _warm_registration()
     associate(np.zeros((1, 2)), np.ones(1), np.zeros((1, 2)))  # the tracker pairs tracks from an object's second frame
     warm_fusion_kernels()
+    warm_payload_kernels()
     _mark_cells(np.zeros((1, 2)), 0, 0, 0.5, 2.0, np.zeros((2, 2), dtype=np.bool_))  # movers' cells: none here
     key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous
     oid = np.zeros(1, dtype=np.int64)

@@ -24,6 +24,7 @@ when the conflict is gone.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,6 +64,43 @@ class Obstacle:
     width_m: float
     t_sim_s: float
     heading_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class Obstacles:
+    """Obstacles as arrays, one row per ``Obstacle``: the planner's per-obstacle work runs
+    in whole-array passes (at 40 vehicles an agent avoids 30-70 moving objects, and one
+    small Python step per object was most of the planning stage's cost)."""
+
+    xy: np.ndarray  # float64 (O, 2)
+    velocity: np.ndarray  # float64 (O, 2)
+    length_m: np.ndarray  # float64 (O,)
+    width_m: np.ndarray  # float64 (O,)
+    t_sim_s: np.ndarray  # float64 (O,)
+    heading_rad: np.ndarray  # float64 (O,)
+
+    def __len__(self) -> int:
+        return len(self.length_m)
+
+    @staticmethod
+    def of(obstacles: Sequence[Obstacle]) -> Obstacles:
+        def column(values: list) -> np.ndarray:
+            return np.array(values, dtype=np.float64)
+
+        return Obstacles(column([o.xy for o in obstacles]).reshape(-1, 2),
+                         column([o.velocity for o in obstacles]).reshape(-1, 2),
+                         column([o.length_m for o in obstacles]), column([o.width_m for o in obstacles]),
+                         column([o.t_sim_s for o in obstacles]), column([o.heading_rad for o in obstacles]))
+
+    def columns(self) -> tuple[np.ndarray, ...]:
+        return self.xy, self.velocity, self.length_m, self.width_m, self.t_sim_s, self.heading_rad
+
+    def keep(self, rows: np.ndarray) -> Obstacles:
+        """The obstacles where ``rows`` (O,) is set."""
+        if rows.all():
+            return self
+        return Obstacles(self.xy[rows], self.velocity[rows], self.length_m[rows], self.width_m[rows],
+                         self.t_sim_s[rows], self.heading_rad[rows])
 
 
 @dataclass(frozen=True, slots=True)
@@ -374,13 +412,15 @@ def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
 # ------------------------------------------------------------------------ speed / conflicts
 
 
-def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5) -> float | None:
-    """Distance along the path of its first cell inside an (inflated) static obstacle."""
+def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5,
+                  s_path: np.ndarray | None = None) -> float | None:
+    """Distance along the path of its first cell inside an (inflated) static obstacle;
+    ``s_path``: the path's ``arc_lengths`` if the caller has them."""
     if len(path) < 2:
         return None
-    cum = arc_lengths(path)
+    cum = arc_lengths(path) if s_path is None else s_path
     s = np.arange(0.5, cum[-1], step_m)
-    rc = grid.cell_of(point_at(path, s))
+    rc = grid.cell_of(point_at(path, s, cum))
     n = blocked.shape[0]
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
     hit = np.zeros(len(s), dtype=bool)
@@ -399,14 +439,23 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
     return t
 
 
-def _body_centers(path: np.ndarray, spec: VehicleSpec) -> tuple[np.ndarray, float]:
+def _body_centers(path: np.ndarray, spec: VehicleSpec, full: np.ndarray) -> tuple[np.ndarray, float]:
     """(3, M, 2) the ego's rear, middle and front circle centres at each path point, and
     their radius, the half width: exact across the body (a car in the next lane is
-    as far as it is), short of the corners by 0.37 m diagonally at most."""
-    full = arc_lengths(path)
+    as far as it is), short of the corners by 0.37 m diagonally at most. ``full``: the
+    path's ``arc_lengths``."""
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-    centers = np.stack([point_at(path, full - body_half), path, point_at(path, full + body_half)])
+    centers = np.stack([point_at(path, full - body_half, full), path, point_at(path, full + body_half, full)])
     return np.ascontiguousarray(centers, dtype=np.float64), float(spec.width_m / 2)
+
+
+@njit(cache=True)
+def _below(dx, dy, reach):
+    """``np.hypot(dx, dy) < reach``, without the hypot where one leg alone reaches: a
+    (faithfully rounded) hypot is never below its longer leg, so the answer is the same."""
+    if abs(dx) >= reach or abs(dy) >= reach:
+        return False
+    return np.hypot(dx, dy) < reach
 
 
 @njit(cache=True)
@@ -422,15 +471,18 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     n_c, m_pts = centers.shape[0], centers.shape[1]
     n_obs, n_k = xy.shape[0], times.shape[1]
     out = np.zeros((m_pts, n_obs), dtype=np.bool_)
+    t_min, t_max = np.empty(times.shape[0]), np.empty(times.shape[0])  # each row's time span
+    for row in range(times.shape[0]):
+        t_lo, t_hi = times[row, 0], times[row, 0]
+        for k in range(1, n_k):
+            t_lo = min(t_lo, times[row, k])
+            t_hi = max(t_hi, times[row, k])
+        t_min[row], t_max[row] = t_lo, t_hi
     for o in range(n_obs):
         bound = reach_m + np.hypot(half[o, 0], half[o, 1]) + 1e-6
         for m in range(m_pts):
             row = m if times.shape[0] > 1 else 0
-            t_lo, t_hi = times[row, 0], times[row, 0]
-            for k in range(1, n_k):
-                t_lo = min(t_lo, times[row, k])
-                t_hi = max(t_hi, times[row, k])
-            t_lo, t_hi = t_lo + dt_obs[o], t_hi + dt_obs[o]
+            t_lo, t_hi = t_min[row] + dt_obs[o], t_max[row] + dt_obs[o]
             ax, ay = xy[o, 0] + vel[o, 0] * t_lo, xy[o, 1] + vel[o, 1] * t_lo
             bx, by = xy[o, 0] + vel[o, 0] * t_hi - ax, xy[o, 1] + vel[o, 1] * t_hi - ay
             len2 = bx * bx + by * by
@@ -438,7 +490,7 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
             for c in range(n_c):
                 px, py = centers[c, m, 0] - ax, centers[c, m, 1] - ay
                 f = 0.0 if len2 <= 0.0 else min(max((px * bx + py * by) / len2, 0.0), 1.0)
-                if np.hypot(px - f * bx, py - f * by) < bound:
+                if _below(px - f * bx, py - f * by, bound):
                     far = False
                     break
             if far:
@@ -450,7 +502,7 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
                     dx, dy = centers[c, m, 0] - ox, centers[c, m, 1] - oy
                     u = abs(dx * cos_h[o] + dy * sin_h[o]) - half[o, 0]  # along the obstacle
                     v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half[o, 1]  # across it
-                    if np.hypot(max(u, 0.0), max(v, 0.0)) < reach_m:
+                    if _below(max(u, 0.0), max(v, 0.0), reach_m):
                         out[m, o] = True
                         break
                 if out[m, o]:
@@ -458,8 +510,8 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     return out
 
 
-def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: list[Obstacle],
-                   t_now_s: float, cfg: PlannerConfig) -> float | None:
+def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: Obstacles | Sequence[Obstacle],
+                   t_now_s: float, cfg: PlannerConfig, s_path: np.ndarray | None = None) -> float | None:
     """Where the vehicle must stop for the moving obstacles, or None.
 
     An obstacle conflicts when it will come within ``safety_m`` of the vehicle's body
@@ -474,21 +526,23 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     passing in the next lane) needs no stop. A vehicle already inside a zone (it
     learnt of the car only once out in its lane) drives on out of it unless the
     conflict itself falls before it is out: stopping there would wait in the car's way.
+
+    ``s_path``: the path's ``arc_lengths`` if the caller has them.
     """
-    if not obstacles or len(path) < 2:
+    if not isinstance(obstacles, Obstacles):
+        obstacles = Obstacles.of(obstacles)
+    if not len(obstacles) or len(path) < 2:
         return None
-    s = arc_lengths(path)
+    s = arc_lengths(path) if s_path is None else s_path
     within = t_path <= cfg.horizon_s
     if not within.any():
         return None
     path, s, t_path = path[within], s[within], t_path[within]
-    xy = np.array([o.xy for o in obstacles])  # (O, 2)
-    vel = np.array([o.velocity for o in obstacles])
-    dt_obs = np.array([t_now_s - o.t_sim_s for o in obstacles])
-    half = np.array([[o.length_m / 2, o.width_m / 2] for o in obstacles])  # (O, 2)
-    cos_h = np.cos([o.heading_rad for o in obstacles])
-    sin_h = np.sin([o.heading_rad for o in obstacles])
-    centers, radius = _body_centers(path, spec)
+    xy, vel = obstacles.xy, obstacles.velocity  # (O, 2)
+    dt_obs = t_now_s - obstacles.t_sim_s
+    half = np.column_stack([obstacles.length_m / 2, obstacles.width_m / 2])  # (O, 2)
+    cos_h, sin_h = np.cos(obstacles.heading_rad), np.sin(obstacles.heading_rad)
+    centers, radius = _body_centers(path, spec, s)
     offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
     timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
@@ -567,24 +621,37 @@ class Planner:
             return path
         return np.vstack([path, point_at(route, s_end + np.arange(1.0, extra + 1e-9, 1.0), cum)])
 
-    def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, obstacles: list[Obstacle],
-                 pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
+    @property
+    def holds_still(self) -> bool:
+        """A waiting vehicle (no cruise speed): its plan is to hold still, whatever it sees."""
+        return self.mission.cruise_speed_mps <= 0.0
+
+    def hold(self, pose: Pose, t_now_s: float) -> Plan:
+        """The plan of a vehicle that ``holds_still``: full brake where it is."""
+        here = np.array([[pose.x_m, pose.y_m]])
+        traj = trajectory_of(here, 0.0, 0.0, self.config.comfort_accel_mps2, t_now_s)
+        return Plan(here, -self.mission.spec.max_brake_mps2, traj, None, True)
+
+    def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray,
+                 obstacles: Obstacles | Sequence[Obstacle], pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
         cfg, spec = self.config, self.mission.spec
         cruise = self.mission.cruise_speed_mps
-        if cruise <= 0.0:  # a waiting vehicle holds still
-            here = np.array([[pose.x_m, pose.y_m]])
-            traj = trajectory_of(here, 0.0, 0.0, cfg.comfort_accel_mps2, t_now_s)
-            return Plan(here, -spec.max_brake_mps2, traj, None, True)
+        if self.holds_still:
+            return self.hold(pose, t_now_s)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         # a reused path starts where the vehicle was when it was planned: distances and
         # arrival times count from where the vehicle is now
         path = path_from(self.path_planner.plan(grid, static, pose, speed_mps), np.array([pose.x_m, pose.y_m]))
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
-        moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),
-                           o.t_sim_s, o.heading_rad) for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]
-        conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg),
-                                 first_blocked(path, grid, self.path_planner.blocked)) if c is not None]
+        if not isinstance(obstacles, Obstacles):
+            obstacles = Obstacles.of(obstacles)
+        vel = obstacles.velocity
+        moving = obstacles.keep(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS)
+        moving = Obstacles(moving.xy, moving.velocity, np.maximum(moving.length_m, MOVER_MIN_DIMS_M[0]),
+                           np.maximum(moving.width_m, MOVER_MIN_DIMS_M[1]), moving.t_sim_s, moving.heading_rad)
+        conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg, s),
+                                 first_blocked(path, grid, self.path_planner.blocked, s_path=s)) if c is not None]
         conflict = min(conflicts) if conflicts else None
         braking, accel, stop_at = False, cfg.comfort_accel_mps2 * np.sign(cruise - speed_mps), None
         if abs(cruise - speed_mps) < 0.2:

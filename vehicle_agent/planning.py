@@ -252,12 +252,14 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
-def path_from(path: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself."""
+def path_from(path: np.ndarray, xy: np.ndarray, s: np.ndarray | None = None, s0: float | None = None) -> np.ndarray:
+    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself;
+    ``s`` and ``s0``: the path's ``arc_lengths`` and ``progress_along(path, xy)`` if the
+    caller has them."""
     if len(path) < 2:
         return path
-    s = arc_lengths(path)
-    s0 = progress_along(path, xy)
+    s = arc_lengths(path) if s is None else s
+    s0 = progress_along(path, xy, s) if s0 is None else s0
     rest = path[s > s0 + 1e-6]
     return np.vstack([xy[None, :], rest]) if len(rest) else np.vstack([xy[None, :], path[-1:]])
 
@@ -269,7 +271,7 @@ def path_until(path: np.ndarray, s: np.ndarray, s_end: float) -> np.ndarray:
     if s_end >= s[-1] or len(path) < 2:
         return path
     keep = int(np.searchsorted(s, s_end, side="right"))
-    return np.vstack([path[:keep], point_at(path, float(s_end)).reshape(1, 2)])
+    return np.vstack([path[:keep], point_at(path, float(s_end), s).reshape(1, 2)])
 
 
 @dataclass
@@ -283,6 +285,22 @@ class PathPlanner:
     _route_raster: RouteRaster | None = None
     _route_cum: np.ndarray | None = None
     _path_end: tuple[np.ndarray, float] | None = None  # a path and progress_along(path, its last point)
+    _path_cum: tuple[np.ndarray, np.ndarray] | None = None  # a path and its arc_lengths
+    _progress: tuple[np.ndarray, tuple[float, float], float] | None = None  # a path, a point, progress_along
+
+    def along(self, path: np.ndarray) -> np.ndarray:
+        """``arc_lengths(path)``, computed once for the path it keeps while it stays good."""
+        if self._path_cum is None or self._path_cum[0] is not path:
+            self._path_cum = (path, arc_lengths(path))
+        return self._path_cum[1]
+
+    def progress(self, path: np.ndarray, xy: np.ndarray) -> float:
+        """``progress_along(path, xy)``, computed once per path and point (the fast check
+        and ``path_from`` both ask where the vehicle is along the kept path)."""
+        key = (float(xy[0]), float(xy[1]))
+        if self._progress is None or self._progress[0] is not path or self._progress[1] != key:
+            self._progress = (path, key, progress_along(path, xy, self.along(path)))
+        return self._progress[2]
 
     @property
     def route_cum(self) -> np.ndarray:
@@ -341,13 +359,14 @@ class PathPlanner:
     def _still_good(self, grid: Grid, passable: np.ndarray, pose: Pose, route_ahead: np.ndarray) -> bool:
         """The fast check: the old path's remaining cells are passable and it still leads ahead."""
         path = self.path
-        s = progress_along(path, np.array([pose.x_m, pose.y_m]))
+        cum = self.along(path)
+        s = self.progress(path, np.array([pose.x_m, pose.y_m]))
         if self._path_end is None or self._path_end[0] is not path:  # the path is kept while it stays good
-            self._path_end = (path, progress_along(path, path[-1]))
+            self._path_end = (path, progress_along(path, path[-1], cum))
         end = self._path_end[1]
         if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or end - s < 15.0:
             return False
-        rc = grid.cell_of(point_at(path, s + np.arange(0.0, end - s, 0.5)))
+        rc = grid.cell_of(point_at(path, s + np.arange(0.0, end - s, 0.5), cum))
         n = grid.state.shape[0]
         inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
         return bool(passable[rc[inside, 0], rc[inside, 1]].all())
@@ -579,7 +598,7 @@ def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_
     s = np.array([_distance_with(v0, v_cruise, accel, x) for x in t])
     cum = arc_lengths(path) if len(path) > 1 else [0.0]
     s = np.minimum(s, cum[-1])
-    xy = point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
+    xy = point_at(path, s, cum) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
     return np.column_stack([xy, t_now_s + t]).astype(np.float32)
 
 
@@ -600,6 +619,7 @@ class Planner:
     config: PlannerConfig = field(default_factory=PlannerConfig)
     path_planner: PathPlanner = field(init=False)
     last: Plan | None = None
+    _onward_from: tuple[tuple[float, float], float] | None = None  # a path's end and its progress along the route
 
     def __post_init__(self) -> None:
         self.path_planner = PathPlanner(np.asarray(self.mission.route, dtype=float), self.mission.spec, self.config)
@@ -615,7 +635,10 @@ class Planner:
         """``path`` continued along the route for as far as the shared horizon reaches at
         the cruise speed (the planned path ends ``lookahead_m`` ahead)."""
         route, cum = self.path_planner.route, self.path_planner.route_cum
-        s_end = progress_along(route, path[-1], cum)
+        end = (float(path[-1, 0]), float(path[-1, 1]))
+        if self._onward_from is None or self._onward_from[0] != end:  # a kept path keeps its end
+            self._onward_from = (end, progress_along(route, path[-1], cum))
+        s_end = self._onward_from[1]
         extra = min(cruise * SHARED_HORIZON_S, cum[-1] - s_end)
         if extra < 1.0:
             return path
@@ -641,7 +664,9 @@ class Planner:
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         # a reused path starts where the vehicle was when it was planned: distances and
         # arrival times count from where the vehicle is now
-        path = path_from(self.path_planner.plan(grid, static, pose, speed_mps), np.array([pose.x_m, pose.y_m]))
+        planner, here = self.path_planner, np.array([pose.x_m, pose.y_m])
+        planned = planner.plan(grid, static, pose, speed_mps)
+        path = path_from(planned, here, planner.along(planned), planner.progress(planned, here))
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
         if not isinstance(obstacles, Obstacles):

@@ -96,9 +96,10 @@ class Agent:
         # what stands still is an obstacle only through the grid: the planner takes moving
         # obstacles alone (Planner.run_step, the same speed test)
         xy, vel, length, width, heading, cells = [], [], [], [], [], []
-        for tr in view.tracks:  # a few: one step each
-            if not tr.speed_mps > STATIC_MPS:
-                continue
+        tracks = view.tracks
+        speed = np.hypot(*np.array([tr.velocity for tr in tracks], dtype=np.float64).reshape(-1, 2).T)  # Track.speed_mps
+        for k in np.flatnonzero(speed > STATIC_MPS).tolist():  # the moving few: one step each
+            tr = tracks[k]
             det = tr.detection
             xy.append(tr.xy)
             vel.append(tr.velocity)
@@ -118,18 +119,14 @@ class Agent:
         movers = (counts > 0) & (np.hypot(velocity[:, 0], velocity[:, 1]) > STATIC_MPS)
         if not movers.any():
             return own, moving
-        # each mover's bounding box: reduced over every object with points (an empty one
-        # would end its neighbour's run), then the movers' rows picked
         starts = np.cumsum(counts) - counts
-        xy_all, nonempty = shared.points[:, :2], counts > 0
-        pick = movers[nonempty]
-        lo = np.minimum.reduceat(xy_all, starts[nonempty], axis=0)[pick]
-        hi = np.maximum.reduceat(xy_all, starts[nonempty], axis=0)[pick]
+        points = np.ascontiguousarray(shared.points, dtype=np.float64)
+        lo, hi = _boxes(points, starts, counts, movers)
         center, extent = (lo + hi) / 2, hi - lo
         vel = velocity[movers]
         received = Obstacles(center, vel, np.maximum(extent.max(axis=1), 1.0), np.maximum(extent.min(axis=1), 1.0),
                              np.full(len(vel), view.t_sim_s), np.arctan2(vel[:, 1], vel[:, 0]))
-        _mark_objects(moving, grid, shared.points, starts, counts, movers)
+        _mark_objects(moving, grid, points, starts, counts, movers)
         return Obstacles(*(np.concatenate([a, b]) for a, b in zip(own.columns(), received.columns()))), moving
 
 
@@ -188,6 +185,31 @@ def _mark_object_cells(points, starts, counts, objects, i0, j0, cell, inv, mask)
     for k in range(objects.shape[0]):
         if objects[k]:
             _mark_cells(points[starts[k]:starts[k] + counts[k]], i0, j0, cell, inv, mask)
+
+
+@njit(cache=True)
+def _boxes(points, starts, counts, objects):
+    """(K', 2) each, the lower and upper x and y of the points of every object where
+    ``objects`` is set (object k's are ``points[starts[k]:starts[k] + counts[k]]``, at
+    least one): ``np.minimum.reduceat`` / ``np.maximum.reduceat`` over the gathered
+    objects, a NaN coordinate propagating as there, without gathering them."""
+    lo = np.empty((objects.sum(), 2))
+    hi = np.empty((objects.sum(), 2))
+    row = 0
+    for k in range(objects.shape[0]):
+        if not objects[k]:
+            continue
+        for d in range(2):
+            a = b = points[starts[k], d]
+            for p in range(starts[k] + 1, starts[k] + counts[k]):
+                v = points[p, d]
+                if v < a or v != v:  # once NaN, stays NaN: no value compares below it
+                    a = v
+                if v > b or v != v:
+                    b = v
+            lo[row, d], hi[row, d] = a, b
+        row += 1
+    return lo, hi
 
 
 def _retimed(traj: np.ndarray, t_now_s: float) -> np.ndarray:

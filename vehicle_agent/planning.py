@@ -136,6 +136,20 @@ def _inflate(obst, radius):
     return out
 
 
+@njit(cache=True)
+def _blocked_passable(static, drivable, corridor, radius):
+    """``_inflate(static, radius)`` (the blocked cells) and the passable cells,
+    ``drivable & ~blocked & corridor``, in one kernel: replaces the inflation and three
+    whole-grid numpy passes (and their temporaries) of every tick."""
+    blocked = _inflate(static, radius)
+    passable = np.empty_like(blocked)
+    ny, nx = blocked.shape
+    for y in range(ny):
+        for x in range(nx):
+            passable[y, x] = drivable[y, x] and not blocked[y, x] and corridor[y, x]
+    return blocked, passable
+
+
 _DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 _DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])
 
@@ -283,6 +297,7 @@ class PathPlanner:
     replans: int = 0
     blocked: np.ndarray | None = None
     _route_raster: RouteRaster | None = None
+    _corridor_raster: LatticeRaster | None = None  # the route raster's cells within corridor_m
     _route_cum: np.ndarray | None = None
     _path_end: tuple[np.ndarray, float] | None = None  # a path and progress_along(path, its last point)
     _path_cum: tuple[np.ndarray, np.ndarray] | None = None  # a path and its arc_lengths
@@ -316,12 +331,13 @@ class PathPlanner:
         """
         cfg = self.config
         radius = int(np.ceil((self.spec.width_m / 2 + cfg.margin_m) / grid.spec.cell_m))
-        blocked = _inflate(static_obstacles, radius)
-        self.blocked = blocked
         if self._route_raster is None:
             self._route_raster = RouteRaster(self.route, grid.spec.cell_m, cfg.corridor_m + 2.0)
-        dist = self._route_raster.window(grid.i0, grid.j0, grid.state.shape[0])
-        passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
+            raster = self._route_raster
+            self._corridor_raster = LatticeRaster(raster.values <= cfg.corridor_m, raster.i0, raster.j0, False)
+        corridor = self._corridor_raster.window(grid.i0, grid.j0, grid.state.shape[0])  # dist <= corridor_m
+        blocked, passable = _blocked_passable(static_obstacles, grid.drivable, corridor, radius)
+        self.blocked = blocked
         s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]), self.route_cum)
         route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0), self.route_cum)
         if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
@@ -341,9 +357,10 @@ class PathPlanner:
         passable[start[0], start[1]] = True
         heading = int(np.round(pose.yaw_rad / (np.pi / 4))) % 8
         # search only the bounding box of the corridor: a band, not the whole 140 m grid
-        rows, cols = np.nonzero(passable)
-        r0, r1 = max(min(rows.min(), start[0], goal[0]) - 1, 0), min(max(rows.max(), start[0], goal[0]) + 2, n)
-        c0, c1 = max(min(cols.min(), start[1], goal[1]) - 1, 0), min(max(cols.max(), start[1], goal[1]) + 2, n)
+        rows, cols = np.flatnonzero(passable.any(axis=1)), np.flatnonzero(passable.any(axis=0))
+        r0, r1 = max(min(rows[0], start[0], goal[0]) - 1, 0), min(max(rows[-1], start[0], goal[0]) + 2, n)
+        c0, c1 = max(min(cols[0], start[1], goal[1]) - 1, 0), min(max(cols[-1], start[1], goal[1]) + 2, n)
+        dist = self._route_raster.window(grid.i0, grid.j0, n)
         extra = (cfg.route_weight * dist[r0:r1, c0:c1]).astype(np.float64)
         cells = _astar(np.ascontiguousarray(passable[r0:r1, c0:c1]), extra, int(start[0] - r0), int(start[1] - c0),
                        heading, int(goal[0] - r0), int(goal[1] - c0), cfg.turn_weight * max(speed_mps, 1.0))

@@ -24,6 +24,7 @@ when the conflict is gone.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -383,10 +384,8 @@ class PathPlanner:
         end = self._path_end[1]
         if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or end - s < 15.0:
             return False
-        rc = grid.cell_of(point_at(path, s + np.arange(0.0, end - s, 0.5), cum))
-        n = grid.state.shape[0]
-        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-        return bool(passable[rc[inside, 0], rc[inside, 1]].all())
+        ahead = point_at(path, s + np.arange(0.0, end - s, 0.5), cum)
+        return bool((_cell_values(passable, ahead, grid.i0, grid.j0, grid.spec.cell_m) != 0).all())
 
 
 def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:
@@ -448,6 +447,23 @@ def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
 # ------------------------------------------------------------------------ speed / conflicts
 
 
+@njit(cache=True)
+def _cell_values(mask, xy, i0, j0, cell):
+    """(P,) int8: 1 where point ``xy[p]`` falls in a set cell of ``mask`` (the grid with
+    cell (0, 0) at lattice (i0, j0)), 0 in an unset one, -1 outside the grid: replaces
+    ``grid.cell_of``, the inside test and the lookup (about ten numpy calls)."""
+    n_r, n_c = mask.shape
+    out = np.full(xy.shape[0], -1, dtype=np.int8)
+    for p in range(xy.shape[0]):
+        fx, fy = np.floor(xy[p, 0] / cell), np.floor(xy[p, 1] / cell)
+        if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
+            continue
+        row, col = np.int64(fy) - j0, np.int64(fx) - i0
+        if 0 <= row < n_r and 0 <= col < n_c:
+            out[p] = 1 if mask[row, col] else 0
+    return out
+
+
 def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5,
                   s_path: np.ndarray | None = None) -> float | None:
     """Distance along the path of its first cell inside an (inflated) static obstacle;
@@ -456,12 +472,8 @@ def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: flo
         return None
     cum = arc_lengths(path) if s_path is None else s_path
     s = np.arange(0.5, cum[-1], step_m)
-    rc = grid.cell_of(point_at(path, s, cum))
-    n = blocked.shape[0]
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-    hit = np.zeros(len(s), dtype=bool)
-    hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
-    return float(s[np.argmax(hit)]) if hit.any() else None
+    hit = np.flatnonzero(_cell_values(blocked, point_at(path, s, cum), grid.i0, grid.j0, grid.spec.cell_m) == 1)
+    return float(s[hit[0]]) if len(hit) else None
 
 
 def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:
@@ -546,6 +558,20 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     return out
 
 
+@functools.cache
+def _time_offsets(window_s: float) -> np.ndarray:
+    """The 7 times around a waypoint's arrival time that ``first_conflict`` tests (one
+    array for every call: never written)."""
+    return np.linspace(-window_s, window_s, 7)
+
+
+@functools.cache
+def _sweep_times(horizon_s: float) -> np.ndarray:
+    """(1, T) the times over which ``first_conflict`` sweeps an obstacle's zone (one
+    array for every call: never written)."""
+    return np.arange(0.0, horizon_s + 1e-9, 0.25)[None, :]
+
+
 def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: Obstacles | Sequence[Obstacle],
                    t_now_s: float, cfg: PlannerConfig, s_path: np.ndarray | None = None) -> float | None:
     """Where the vehicle must stop for the moving obstacles, or None.
@@ -579,7 +605,7 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     half = np.column_stack([obstacles.length_m / 2, obstacles.width_m / 2])  # (O, 2)
     cos_h, sin_h = np.cos(obstacles.heading_rad), np.sin(obstacles.heading_rad)
     centers, radius = _body_centers(path, spec, s)
-    offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
+    offsets = _time_offsets(cfg.time_window_s)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
     timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
     timed[s < 0.5] = False  # where the vehicle already is
@@ -587,7 +613,7 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     if not conflicting.any():
         return None
     c = conflicting
-    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)[None, :]  # the same times at every waypoint
+    sweep_t = _sweep_times(cfg.horizon_s)  # the same times at every waypoint
     zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
                  radius + cfg.wait_clear_m)  # (M, O')
     first = zone.any(axis=1)
@@ -612,11 +638,12 @@ def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_
     """Waypoints [x, y, t] every ``step_s`` along ``path``, from ``v0`` towards the cruise
     speed at ``accel``: what the control message shares (``Planner.run_step``)."""
     t = np.arange(0.0, horizon_s + 1e-9, step_s)
+    if len(path) < 2:  # standing at its one point
+        return np.column_stack([np.repeat(path[:1], len(t), axis=0), t_now_s + t]).astype(np.float32)
     s = np.array([_distance_with(v0, v_cruise, accel, x) for x in t])
-    cum = arc_lengths(path) if len(path) > 1 else [0.0]
+    cum = arc_lengths(path)
     s = np.minimum(s, cum[-1])
-    xy = point_at(path, s, cum) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
-    return np.column_stack([xy, t_now_s + t]).astype(np.float32)
+    return np.column_stack([point_at(path, s, cum), t_now_s + t]).astype(np.float32)
 
 
 def _distance_with(v0: float, v_cruise: float, accel: float, t: float) -> float:

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
-from vehicle_agent.control import VehicleController
+from vehicle_agent.control import VehicleController, clip
 from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
 from vehicle_agent.perception import exact_inverse
@@ -78,8 +78,7 @@ class Agent:
             steer = 0.0
             if len(plan.path) >= 2:
                 _, steer = self.controller.run_step(scan.pose, scan.speed_mps, plan.path, self.mission.cruise_speed_mps)
-            accel = float(np.clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2,
-                                  self.mission.spec.max_accel_mps2))
+            accel = clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2, self.mission.spec.max_accel_mps2)
             return Command(scan.tick, scan.t_sim_s, self.mission.vid, accel, steer)
 
     def drive(self, view: View, fused: FusedGrid, scan: Scan) -> Command:

@@ -493,8 +493,12 @@ def _body_centers(path: np.ndarray, spec: VehicleSpec, full: np.ndarray) -> tupl
     as far as it is), short of the corners by 0.37 m diagonally at most. ``full``: the
     path's ``arc_lengths``."""
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-    centers = np.stack([point_at(path, full - body_half, full), path, point_at(path, full + body_half, full)])
-    return np.ascontiguousarray(centers, dtype=np.float64), float(spec.width_m / 2)
+    m = len(path)
+    centers = np.empty((3, m, 2))
+    # rear and front in one point_at (np.interp's value at a point does not depend on the others)
+    centers[0::2] = point_at(path, np.concatenate([full - body_half, full + body_half]), full).reshape(2, m, 2)
+    centers[1] = path
+    return centers, float(spec.width_m / 2)
 
 
 @njit(cache=True)

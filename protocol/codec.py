@@ -23,6 +23,7 @@ import math
 import threading
 import types
 import typing
+from collections.abc import Sequence
 from typing import Any
 
 import msgpack
@@ -193,6 +194,7 @@ class _FieldError(Exception):
 
 Converter = typing.Callable[[Any], Any]
 _CONVERTERS: dict[Any, Converter] = {}
+_FIELD_INDEX: dict[type, dict[str, tuple[int, Converter]]] = {}
 
 
 def _converter(hint: Any) -> Converter:
@@ -419,6 +421,46 @@ def decode(payload: bytes | bytearray | memoryview, expected: type | None = None
     Raises ``MalformedMessage`` for anything that is not a well-formed message of a
     known type and the current version (or not of ``expected``).
     """
+    cls, values = _envelope(payload, expected)
+    try:
+        return _converter(cls)(values)
+    except _FieldError as err:
+        raise MalformedMessage(f"{cls.__name__}{''.join(err.path)}: {err.text}") from None
+    except (TypeError, ValueError) as exc:  # e.g. a record's own __post_init__ check
+        raise MalformedMessage(f"{cls.__name__}: {exc}") from None
+
+
+def decode_fields(payload: bytes | bytearray | memoryview, expected: type, names: Sequence[str]) -> tuple:
+    """The named fields of a message of type ``expected``, converted and checked as
+    ``decode`` converts them; the other fields are left unread (not checked). For a
+    reader that needs a few small fields of many messages: a vehicle reads every heard
+    control message's ballot and motion, and only its group's object maps.
+
+    Raises ``MalformedMessage`` as ``decode`` does, for the envelope and the named fields."""
+    cls, values = _envelope(payload, expected)
+    index = _field_index(cls)
+    if not isinstance(values, list) or len(values) != len(index):
+        raise MalformedMessage(f"{cls.__name__} needs {len(index)} fields")
+    out = []
+    for name in names:
+        at, conv = index[name]
+        try:
+            out.append(conv(values[at]))
+        except _FieldError as err:
+            raise MalformedMessage(f"{cls.__name__}.{name}{''.join(err.path)}: {err.text}") from None
+        except (TypeError, ValueError) as exc:
+            raise MalformedMessage(f"{cls.__name__}.{name}: {exc}") from None
+    return tuple(out)
+
+
+def _field_index(cls: type) -> dict[str, tuple[int, Converter]]:
+    """Each field of a record by name: its place in the wire list and its converter."""
+    return _built_once(_FIELD_INDEX, cls, lambda c: {name: (at, _converter(hint))
+                                                     for at, (name, hint) in enumerate(_hints(c))})
+
+
+def _envelope(payload: bytes | bytearray | memoryview, expected: type | None) -> tuple[type, list]:
+    """The message class and the field values of a payload, its envelope checked."""
     try:
         body = msgpack.unpackb(payload, raw=False, use_list=True, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated exception types
@@ -433,10 +475,5 @@ def decode(payload: bytes | bytearray | memoryview, expected: type | None = None
         raise MalformedMessage(f"expected {expected.__name__}, got {cls.__name__}")
     if type(version) is not int or version != cls.VERSION:
         raise MalformedMessage(f"{cls.__name__} version {_brief(version)}, this build speaks {cls.VERSION}")
-    try:
-        return _converter(cls)(body[2:])
-    except _FieldError as err:
-        raise MalformedMessage(f"{cls.__name__}{''.join(err.path)}: {err.text}") from None
-    except (TypeError, ValueError) as exc:  # e.g. a record's own __post_init__ check
-        raise MalformedMessage(f"{cls.__name__}: {exc}") from None
+    return cls, body[2:]
 

@@ -3,15 +3,17 @@ heard, the vehicles that transmit laid out the same plan, so nothing collides.""
 
 from __future__ import annotations
 
+import msgpack
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from channel_proxy import loss, medium
+from protocol.codec import MalformedMessage, encode
 from protocol.messages import ControlMsg, ObjectMap, Pose
-from vehicle_agent.agreement import (AgreementConfig, agreed_p, agreed_state, decide, frames_of, group_of,
-                                     group_schedule, members, n_groups, plan, unscheduled_after)
+from vehicle_agent.agreement import (AgreementConfig, HeardControl, agreed_p, agreed_state, decide, frames_of,
+                                     group_of, group_schedule, members, n_groups, plan, unscheduled_after)
 from vehicle_agent.scheduler import get, make_instance
 
 GROUPED = AgreementConfig()
@@ -338,3 +340,41 @@ def test_members_equal_counting_each_ballots_distinct_others(ballots, sort, quor
     want = sorted(v for v, n in votes.items() if n >= need)
     got = members({a: np.array(h, dtype=np.int64) for a, h in ballots.items()}, quorum)
     assert got.dtype == np.int64 and got.tolist() == want
+
+
+def _broken_map(m: ControlMsg) -> bytes:
+    """``m`` encoded, its object map's visibility bytes cut short (the rest intact)."""
+    body = msgpack.unpackb(encode(m))
+    objects = body[2 + 6]  # the envelope's type and version, then tick .. trajectory
+    objects[4][2] = objects[4][2][:-1]
+    return msgpack.packb(body)
+
+
+def test_heard_controls_decide_as_whole_messages_and_open_only_the_groups_maps():
+    """``decide`` on ``HeardControl`` (ballot and motion read, object map not) gives the
+    decision and plan the whole messages give; it opens the object maps of its group's
+    members only: with every heard map broken, only those members are malformed, and
+    missing, and the vehicle stays silent."""
+    vids = list(range(12))
+    msgs = {v: msg(v, 5, [u for u in vids if u != v], [(100 + v, 900, {(v + 1) % 12: 1.0})], xy=(3.0 * v, 0.0))
+            for v in vids}
+    for v in vids:
+        others = [msgs[u] for u in vids if u != v]
+        whole = decide(v, 5, msgs[v], others, GROUPED)
+        lazy = decide(v, 5, msgs[v], [HeardControl.read(encode(m)) for m in others], GROUPED)
+        assert whole.members.tolist() == lazy.members.tolist() and whole.group.tolist() == lazy.group.tolist()
+        assert list(lazy.messages) == list(whole.messages) and not lazy.malformed and whole.transmits
+        assert plan(lazy, GROUPED) == plan(whole, GROUPED)
+        broken = decide(v, 5, msgs[v], [HeardControl.read(_broken_map(m)) for m in others], GROUPED)
+        assert broken.members.tolist() == whole.members.tolist()  # the ballots were still read
+        peers = sorted(set(whole.group.tolist()) - {v})
+        assert sorted(broken.malformed) == peers and broken.missing.tolist() == peers
+        assert not broken.transmits and plan(broken, GROUPED) == ()
+        assert "visibility" in str(broken.malformed[peers[0]])
+
+
+def test_a_heard_control_whose_ballot_is_malformed_is_refused():
+    body = msgpack.unpackb(encode(msg(2, 5, [1, 3])))
+    body[2 + 7] = ["<i8", [2], b"\x00"]  # heard: one byte for two int64
+    with pytest.raises(MalformedMessage, match=r"ControlMsg\.heard"):
+        HeardControl.read(msgpack.packb(body))

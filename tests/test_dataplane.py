@@ -923,3 +923,26 @@ def test_the_cheap_distance_test_decides_as_hypot(dx, dy, bound, nudge):
     for _ in range(abs(nudge)):
         at = float(np.nextafter(at, np.inf if nudge > 0 else -np.inf))
     assert _farther(dx, dy, at) == (np.hypot(dx, dy) > at)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_rays=st.integers(1, 12))
+def test_visible_stops_casting_once_v_is_settled_and_agrees_with_the_share(seed, n_rays):
+    """``spatial.visible``, which stops casting a target's rays once v is settled, against
+    the paper's v from every ray's share (``visibility(visible_share(...))``), in crowded
+    random scenes."""
+    from vehicle_agent.spatial import visible
+
+    rng = np.random.default_rng(seed)
+    n_t, n_b, n_v = int(rng.integers(0, 20)), int(rng.integers(0, 5)), int(rng.integers(1, 25))
+    boxes = np.column_stack([rng.uniform(-60, 60, n_t + n_b), rng.uniform(-60, 60, n_t + n_b),
+                             rng.uniform(-np.pi, np.pi, n_t + n_b),
+                             np.r_[rng.uniform(0.5, 12, n_t), rng.uniform(10, 60, n_b)],
+                             np.r_[rng.uniform(0.5, 3, n_t), rng.uniform(10, 60, n_b)]])
+    corners = np.array([box_corners(*b) for b in boxes]).reshape(-1, 4, 2)
+    viewers = rng.uniform(-70, 70, (n_v, 2))
+    ranges = rng.uniform(20, 120, n_v)
+    args = (viewers, ranges, corners[:n_t], corners, np.arange(n_t))
+    expected = visibility(visible_share(*args, n_rays=n_rays))
+    np.testing.assert_array_equal(visible(*args, n_rays=n_rays), expected)
+    assert expected.dtype == np.float32

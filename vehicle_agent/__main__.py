@@ -383,6 +383,8 @@ class Pipeline:
         agent.dataplane.neighbors.update(heard)
         with timed(agent.timings_ms, "schedule"):
             decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
+            for err in decision.malformed.values():  # a group member's object map: not heard after all
+                link.drops.add("ctrl bundle item", err)
             slots = plan_transmissions(decision, self.agreement)
             self.unscheduled = unscheduled_after(own, [t.object_id for t in slots])
         with timed(agent.timings_ms, "encoding"):

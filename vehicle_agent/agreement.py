@@ -64,7 +64,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
-from protocol.messages import ControlMsg
+from protocol.codec import MalformedMessage, decode, decode_fields
+from protocol.messages import ControlMsg, Pose
 from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
 
 RULES = ("grouped", "heard")
@@ -169,6 +170,35 @@ def frames_of(group: int, n: int, n_frames: int) -> tuple[int, ...]:
     return tuple(f for f in range(n_frames) if n > 0 and f % n == group)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class HeardControl:
+    """A control message heard this interval, read as far as every vehicle needs it:
+    its sender's ballot (``heard``) for the members, and its motion for the neighbour
+    table. The object map, most of the message, only the sender's group schedules
+    over: ``decide`` opens it (``message``) for its group's members alone, 3 of the 39
+    messages a vehicle hears at 40 vehicles."""
+
+    tick: int
+    t_sim_s: float
+    vid: int
+    pose: Pose
+    speed_mps: float
+    trajectory: np.ndarray
+    heard: np.ndarray
+    raw: bytes
+
+    FIELDS = ("tick", "t_sim_s", "vid", "pose", "speed_mps", "trajectory", "heard")
+
+    @staticmethod
+    def read(raw: bytes) -> HeardControl:
+        """Raises ``MalformedMessage`` if the envelope or one of these fields is."""
+        return HeardControl(*decode_fields(raw, ControlMsg, HeardControl.FIELDS), raw)
+
+    def message(self) -> ControlMsg:
+        """The whole message; raises ``MalformedMessage`` (its object map, say)."""
+        return decode(self.raw, ControlMsg)
+
+
 def offers_of(msg: ControlMsg) -> SenderOffers:
     om = msg.objects
     return SenderOffers(om.object_id, om.size_bytes, om.receivers, om.visibility, om.relevance)
@@ -183,8 +213,9 @@ class Decision:
     members: np.ndarray  # M, ascending
     group: np.ndarray  # the vehicle's group (members), ascending; empty if it is not a member
     frames: tuple[int, ...]  # the PHY frames its group owns
-    missing: np.ndarray  # group members whose control message it did not hear
+    missing: np.ndarray  # group members whose control message it did not hear (or could not read)
     messages: dict[int, ControlMsg]  # the group members' messages it schedules over (own included)
+    malformed: dict[int, MalformedMessage] = field(default_factory=dict)  # heard, but unreadable when opened
 
     @property
     def is_member(self) -> bool:
@@ -196,15 +227,19 @@ class Decision:
         return self.is_member and len(self.missing) == 0 and len(self.frames) > 0
 
 
-def decide(vid: int, tick: int, own: ControlMsg, heard: Sequence[ControlMsg], config: AgreementConfig) -> Decision:
+def decide(vid: int, tick: int, own: ControlMsg, heard: Sequence[ControlMsg | HeardControl],
+           config: AgreementConfig) -> Decision:
     """Apply the rule to the control messages heard this interval (``own`` is the vehicle's
-    own message of this interval; ``heard`` those in its ``CtrlBundle``)."""
-    msgs = {int(m.vid): m for m in heard if m.tick == tick and m.vid != vid}
-    msgs[vid] = own
+    own message of this interval; ``heard`` those in its ``CtrlBundle``, whole or as
+    ``HeardControl``, whose object maps are opened here for the group's members only)."""
+    ballots: dict[int, ControlMsg | HeardControl] = {int(m.vid): m for m in heard if m.tick == tick and m.vid != vid}
+    ballots[vid] = own
     if config.rule == "heard":  # the paper's behaviour: one group of whatever was heard
+        msgs, bad = _opened(ballots)
         everyone = np.array(sorted(msgs), dtype=np.int64)
-        return Decision(tick, vid, everyone, everyone, tuple(range(config.n_frames)), np.zeros(0, np.int64), msgs)
-    m = members({v: msg.heard for v, msg in msgs.items()}, config.quorum)
+        return Decision(tick, vid, everyone, everyone, tuple(range(config.n_frames)), np.zeros(0, np.int64), msgs,
+                        bad)
+    m = members({v: msg.heard for v, msg in ballots.items()}, config.quorum)
     G = n_groups(len(m), config.group_size, config.n_frames)
     groups = group_of(m, tick, G)
     mine = np.flatnonzero(m == vid)
@@ -212,9 +247,25 @@ def decide(vid: int, tick: int, own: ControlMsg, heard: Sequence[ControlMsg], co
         return Decision(tick, vid, m, np.zeros(0, np.int64), (), np.zeros(0, np.int64), {vid: own})
     g = int(groups[mine[0]])
     group = m[groups == g]
+    msgs, bad = _opened({v: ballots[v] for v in group.tolist() if v in ballots})
     missing = np.array([v for v in group.tolist() if v not in msgs], dtype=np.int64)
-    return Decision(tick, vid, m, group, frames_of(g, G, config.n_frames), missing,
-                    {v: msgs[v] for v in group.tolist() if v in msgs})
+    return Decision(tick, vid, m, group, frames_of(g, G, config.n_frames), missing, msgs, bad)
+
+
+def _opened(ballots: Mapping[int, ControlMsg | HeardControl]) -> tuple[dict[int, ControlMsg],
+                                                                       dict[int, MalformedMessage]]:
+    """The whole messages of ``ballots`` (same order), and the errors of those that
+    cannot be read: a vehicle that cannot read a member's object map did not hear it."""
+    msgs, bad = {}, {}
+    for v, m in ballots.items():
+        if isinstance(m, HeardControl):
+            try:
+                msgs[v] = m.message()
+            except MalformedMessage as err:
+                bad[v] = err
+        else:
+            msgs[v] = m
+    return msgs, bad
 
 
 # --------------------------------------------------------------------- the plan

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -22,8 +22,9 @@ from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatc
 from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object, payload_size
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects,
                                       scan_grid, scan_objects)
-from vehicle_agent.spatial import match_vehicles, relevance, visibility, visible_share
+from vehicle_agent.spatial import match_vehicles, relevance, visible
 from vehicle_agent.tracking import Track, Tracker
+from vehicle_agent.agreement import HeardControl
 
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
@@ -56,12 +57,13 @@ class NeighborState:
 
 @dataclass
 class NeighborTable:
-    """Latest control message per vehicle; stale ones are aged (paper 4.1, loss compensation)."""
+    """Latest control message per vehicle (whole, or as the ``HeardControl`` that carries
+    its motion); stale ones are aged (paper 4.1, loss compensation)."""
 
     max_age_s: float = 2.0
-    last: dict[int, ControlMsg] = field(default_factory=dict)
+    last: dict[int, ControlMsg | HeardControl] = field(default_factory=dict)
 
-    def update(self, msgs: list[ControlMsg]) -> None:
+    def update(self, msgs: Sequence[ControlMsg | HeardControl]) -> None:
         for m in msgs:
             prev = self.last.get(m.vid)
             if prev is None or m.tick >= prev.tick:
@@ -177,9 +179,8 @@ class DataPlane:
             own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
                                           self.mission.spec.length_m, self.mission.spec.width_m, 0.0]]))
             occluders = np.concatenate([targets, own, self.buildings])
-            share = visible_share(viewers, np.full(len(viewers), self.mission.lidar.range_m), targets, occluders,
-                                  np.arange(len(tracks)), match_vehicles(viewers, centroids))
-            vis = visibility(share)
+            vis = visible(viewers, np.full(len(viewers), self.mission.lidar.range_m), targets, occluders,
+                          np.arange(len(tracks)), match_vehicles(viewers, centroids))
         with self._timed("relevance"):
             dims = np.array([[max(t.detection.length_m, t.detection.width_m, 1.0), max(t.detection.width_m, 1.0)]
                              for t in tracks]).reshape(-1, 2)

@@ -25,6 +25,7 @@ from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
     Transmission
 from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
+from vehicle_agent.agreement import HeardControl
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +84,7 @@ class V2VLink:
         finally:
             self.wait_s += time.perf_counter() - t0
 
-    def exchange_control(self, msg: ControlMsg) -> list[ControlMsg]:
+    def exchange_control(self, msg: ControlMsg) -> list[HeardControl]:
         """Broadcast our control message; return the ones we heard this interval."""
         heard = heard_in(self.exchange_control_raw(encode(msg), msg.tick), self.vid, self.drops)
         if heard is None:
@@ -115,17 +116,18 @@ class V2VLink:
         return bundle
 
 
-def heard_in(bundle: CtrlBundle | None, vid: int, drops: DropCounter) -> list[ControlMsg] | None:
-    """The control messages ``vid`` heard in ``bundle``, decoded (a malformed one is
-    counted in ``drops`` and left out); None if there is no bundle or ``vid`` is not
-    one of its receivers."""
+def heard_in(bundle: CtrlBundle | None, vid: int, drops: DropCounter) -> list[HeardControl] | None:
+    """The control messages ``vid`` heard in ``bundle``, read as far as every vehicle
+    needs them (``HeardControl``: the object map is opened by the sender's group only; a
+    message whose envelope, ballot or motion is malformed is counted in ``drops`` and
+    left out); None if there is no bundle or ``vid`` is not one of its receivers."""
     mine = bundle.heard_by(vid) if bundle is not None else None
     if mine is None:
         return None
     heard = []
     for raw in mine:
         try:
-            heard.append(decode(raw, ControlMsg))
+            heard.append(HeardControl.read(raw))
         except MalformedMessage as err:
             drops.add("ctrl bundle item", err)
     return heard

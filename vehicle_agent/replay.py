@@ -34,6 +34,7 @@ from protocol.codec import decode, encode
 from protocol.messages import (ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, MapMsg, Mission,
                                Pose, Reception, Scan, Transmission)
 from protocol.session import DropCounter
+from vehicle_agent.agreement import HeardControl
 from vehicle_agent.link import heard_in, received_in
 
 OUTPUTS = ("ctrl", "data", "emp", "cmd", "report")
@@ -99,7 +100,7 @@ class ReplayLink:
         finally:
             self.decode_s += time.process_time() - t0
 
-    def exchange_control(self, msg: ControlMsg) -> list[ControlMsg]:
+    def exchange_control(self, msg: ControlMsg) -> list[HeardControl]:
         self.sent["ctrl"][msg.tick] = encode(msg)
         heard = heard_in(self._decode(self.ctrl_rx.get(msg.tick), CtrlBundle), self.vid, self.drops)
         self.missed_bundles += heard is None

@@ -327,3 +327,21 @@ def test_received_movers_boxes_and_cells_are_those_of_the_gathered_objects():
     _mark_object_cells(points, starts, counts, objects, -20, -20, 0.5, 2.0, got)
     _mark_cells(np.ascontiguousarray(gathered), -20, -20, 0.5, 2.0, want)
     assert np.array_equal(got, want) and want.any()
+
+
+def test_inflation_is_every_cell_within_the_radius_of_an_obstacle_cell():
+    """``_inflate`` against the disc's offsets one by one (shifted copies OR-ed)."""
+    from vehicle_agent.planning import _inflate
+
+    rng = np.random.default_rng(9)
+    for radius in (0, 1, 2, 3, 5):
+        obst = rng.random((40, 53)) < 0.03
+        obst[0, 0] = obst[-1, 20] = obst[17, -1] = True  # at the edges
+        want = np.zeros_like(obst)
+        ny, nx = obst.shape
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dx * dx + dy * dy <= radius * radius:
+                    want[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)] |= \
+                        obst[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)]
+        assert np.array_equal(_inflate(obst, radius), want), radius

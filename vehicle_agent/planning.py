@@ -118,22 +118,26 @@ class Plan:
 
 @njit(cache=True)
 def _inflate(obst, radius):
-    """Cells within ``radius`` cells (Euclidean) of an obstacle cell."""
+    """Cells within ``radius`` cells (Euclidean) of an obstacle cell: the disc painted
+    round each one a row run at a time (the run's half width at row offset dy is the
+    largest w with w^2 + dy^2 <= radius^2), not a test per cell of its square."""
     ny, nx = obst.shape
     out = np.zeros_like(obst)
-    r2 = radius * radius
+    half = np.empty(2 * radius + 1, dtype=np.int64)
+    for dy in range(-radius, radius + 1):
+        w = 0
+        while (w + 1) * (w + 1) + dy * dy <= radius * radius:
+            w += 1
+        half[dy + radius] = w
     for y in range(ny):
         for x in range(nx):
             if not obst[y, x]:
                 continue
             for dy in range(-radius, radius + 1):
                 yy = y + dy
-                if yy < 0 or yy >= ny:
-                    continue
-                for dx in range(-radius, radius + 1):
-                    xx = x + dx
-                    if 0 <= xx < nx and dx * dx + dy * dy <= r2:
-                        out[yy, xx] = True
+                if 0 <= yy < ny:
+                    w = half[dy + radius]
+                    out[yy, max(x - w, 0):min(x + w + 1, nx)] = True
     return out
 
 

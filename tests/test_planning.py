@@ -248,3 +248,100 @@ def test_an_ego_already_out_in_the_oncoming_lane_drives_on_unless_the_car_is_upo
     near = Obstacle(np.array([70.0, 2.0]), np.array([-8.0, 0.0]), 4.5, 1.8, 0.0, np.pi)
     assert first_conflict(path, t_path, spec, [far], 0.0, cfg) is None
     assert first_conflict(path, t_path, spec, [near], 0.0, cfg) == pytest.approx(0.5)
+
+
+# ------------------------------------------------------------------ kernels against the numpy they replace
+
+
+def test_cell_values_are_cell_of_and_the_lookup():
+    """``_cell_values``: 1 / 0 for a point in a set / unset cell, -1 outside, as
+    ``Grid.cell_of`` with the inside test and the lookup; NaN and inf fall outside."""
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _cell_values
+
+    rng = np.random.default_rng(3)
+    spec = GridSpec(half_extent_m=10.0)
+    n = spec.cells
+    grid = Grid(spec, 17, -63, np.zeros((n, n), np.uint8), np.ones((n, n), bool))
+    mask = rng.random((n, n)) < 0.3
+    xy = np.column_stack([rng.uniform(5.0, 20.0, 4000), rng.uniform(-35.0, -18.0, 4000)])  # the grid and around
+    xy[:4] = [[np.nan, -25.0], [np.inf, -25.0], [10.0, -np.inf], [1e300, 1e300]]
+    rc = grid.cell_of(xy[4:])
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+    want = np.full(len(rc), -1)
+    want[inside] = mask[rc[inside, 0], rc[inside, 1]]
+    got = _cell_values(mask, xy, grid.i0, grid.j0, spec.cell_m)
+    assert got[:4].tolist() == [-1, -1, -1, -1]
+    assert got[4:].tolist() == want.tolist()
+    assert {-1, 0, 1} <= set(got.tolist())
+
+
+def test_blocked_and_passable_in_one_kernel_are_the_inflation_and_the_masks():
+    from vehicle_agent.planning import _blocked_passable, _inflate
+
+    rng = np.random.default_rng(5)
+    static = rng.random((60, 70)) < 0.02
+    drivable, corridor = rng.random((60, 70)) < 0.8, rng.random((60, 70)) < 0.7
+    blocked, passable = _blocked_passable(static, drivable, corridor, 3)
+    assert np.array_equal(blocked, _inflate(static, 3))
+    assert np.array_equal(passable, drivable & ~_inflate(static, 3) & corridor)
+    assert passable.any() and (drivable & corridor & ~passable).any()
+
+
+def test_one_leg_rejects_exactly_where_the_hypot_would():
+    """``_below(dx, dy, r)`` is ``np.hypot(dx, dy) < r``, at and around the boundary."""
+    from vehicle_agent.planning import _below
+
+    rng = np.random.default_rng(11)
+    r = 3.2
+    legs = np.concatenate([rng.uniform(-5.0, 5.0, 3000), [0.0, -0.0, r, -r, np.nextafter(r, 0.0), np.nan, np.inf],
+                           r * rng.uniform(0.999999, 1.000001, 500)])
+    dx, dy = rng.choice(legs, 20000), rng.choice(legs, 20000)
+    want = np.hypot(dx, dy) < r
+    got = np.array([_below(a, b, r) for a, b in zip(dx.tolist(), dy.tolist())])
+    assert np.array_equal(got, want) and want.any() and not want.all()
+
+
+def test_received_movers_boxes_and_cells_are_those_of_the_gathered_objects():
+    """``_boxes`` and ``_mark_object_cells`` over the chosen objects of a stack are
+    ``np.minimum/maximum.reduceat`` and ``_mark_cells`` over those objects gathered
+    (objects without points in between; a NaN coordinate propagates)."""
+    from vehicle_agent.agent import _boxes, _mark_cells, _mark_object_cells
+
+    rng = np.random.default_rng(2)
+    counts = rng.integers(0, 40, 30)
+    counts[[3, 4]] = 0
+    points = rng.normal(0.0, 8.0, (int(counts.sum()), 3))
+    points[int(counts[:7].sum()) + 1, 0] = np.nan  # in object 7 (it has points)
+    assert counts[7] > 1
+    objects = (counts > 0) & (rng.random(30) < 0.6)
+    objects[7] = True
+    starts = np.cumsum(counts) - counts
+    gathered = points[np.repeat(objects, counts)]
+    run_starts = (np.cumsum(counts[objects]) - counts[objects])
+    lo, hi = _boxes(points, starts, counts, objects)
+    np.testing.assert_array_equal(lo, np.minimum.reduceat(gathered[:, :2], run_starts, axis=0))
+    np.testing.assert_array_equal(hi, np.maximum.reduceat(gathered[:, :2], run_starts, axis=0))
+    assert np.isnan(lo[int(objects[:7].sum()), 0])
+    got, want = np.zeros((40, 40), bool), np.zeros((40, 40), bool)
+    _mark_object_cells(points, starts, counts, objects, -20, -20, 0.5, 2.0, got)
+    _mark_cells(np.ascontiguousarray(gathered), -20, -20, 0.5, 2.0, want)
+    assert np.array_equal(got, want) and want.any()
+
+
+def test_inflation_is_every_cell_within_the_radius_of_an_obstacle_cell():
+    """``_inflate`` against the disc's offsets one by one (shifted copies OR-ed)."""
+    from vehicle_agent.planning import _inflate
+
+    rng = np.random.default_rng(9)
+    for radius in (0, 1, 2, 3, 5):
+        obst = rng.random((40, 53)) < 0.03
+        obst[0, 0] = obst[-1, 20] = obst[17, -1] = True  # at the edges
+        want = np.zeros_like(obst)
+        ny, nx = obst.shape
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dx * dx + dy * dy <= radius * radius:
+                    want[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)] |= \
+                        obst[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)]
+        assert np.array_equal(_inflate(obst, radius), want), radius

@@ -19,11 +19,11 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
-from vehicle_agent.control import VehicleController
+from vehicle_agent.control import VehicleController, clip
 from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
 from vehicle_agent.perception import exact_inverse
-from vehicle_agent.planning import STATIC_MPS, Obstacle, Plan, Planner
+from vehicle_agent.planning import STATIC_MPS, Obstacles, Plan, Planner
 
 
 
@@ -64,6 +64,9 @@ class Agent:
 
     def plan(self, view: View, fused: FusedGrid, scan: Scan) -> Plan:
         with timed(self.timings_ms, "planning"):
+            if self.planner.holds_still:  # what it sees changes nothing: no obstacles to gather
+                self.last_plan = self.planner.hold(scan.pose, scan.t_sim_s)
+                return self.last_plan
             obstacles, moving = self._obstacles(view, fused)
             plan = self.planner.run_step(view.grid, fused.state, moving, obstacles, scan.pose, scan.speed_mps,
                                          scan.t_sim_s)
@@ -75,8 +78,7 @@ class Agent:
             steer = 0.0
             if len(plan.path) >= 2:
                 _, steer = self.controller.run_step(scan.pose, scan.speed_mps, plan.path, self.mission.cruise_speed_mps)
-            accel = float(np.clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2,
-                                  self.mission.spec.max_accel_mps2))
+            accel = clip(plan.accel_mps2, -self.mission.spec.max_brake_mps2, self.mission.spec.max_accel_mps2)
             return Command(scan.tick, scan.t_sim_s, self.mission.vid, accel, steer)
 
     def drive(self, view: View, fused: FusedGrid, scan: Scan) -> Command:
@@ -85,44 +87,46 @@ class Agent:
 
     # ------------------------------------------------------------------ helpers
 
-    def _obstacles(self, view: View, fused: FusedGrid) -> tuple[list[Obstacle], np.ndarray]:
+    def _obstacles(self, view: View, fused: FusedGrid) -> tuple[Obstacles, np.ndarray]:
         """The moving tracks and received objects as obstacles, and their cells."""
         grid = view.grid
         n = grid.state.shape[0]
         moving = np.zeros((n, n), dtype=bool)
-        obstacles = []
         # what stands still is an obstacle only through the grid: the planner takes moving
         # obstacles alone (Planner.run_step, the same speed test)
-        cells = []
-        for tr in view.tracks:
-            if not tr.speed_mps > STATIC_MPS:
-                continue
+        xy, vel, length, width, heading, cells = [], [], [], [], [], []
+        tracks = view.tracks
+        speed = np.hypot(*np.array([tr.velocity for tr in tracks], dtype=np.float64).reshape(-1, 2).T)  # Track.speed_mps
+        for k in np.flatnonzero(speed > STATIC_MPS).tolist():  # the moving few: one step each
+            tr = tracks[k]
             det = tr.detection
-            obstacles.append(Obstacle(tr.xy, tr.velocity, max(det.length_m, 1.0), max(det.width_m, 1.0),
-                                      view.t_sim_s, tr.heading_rad))
+            xy.append(tr.xy)
+            vel.append(tr.velocity)
+            length.append(max(det.length_m, 1.0))
+            width.append(max(det.width_m, 1.0))
+            heading.append(tr.heading_rad)
             cells.append(det.cells)
         if cells:  # every mover's cells at once
             _mark(moving, grid, np.concatenate(cells) * grid.spec.cell_m + grid.spec.cell_m / 2)
+        own = Obstacles(np.array(xy, dtype=np.float64).reshape(-1, 2), np.array(vel, dtype=np.float64).reshape(-1, 2),
+                        np.array(length, dtype=np.float64), np.array(width, dtype=np.float64),
+                        np.full(len(xy), view.t_sim_s), np.array(heading, dtype=np.float64))
         shared = self.dataplane.shared_batch
-        shared = shared.keep(shared.counts > 0)
         if not len(shared):
-            return obstacles, moving
-        vel = shared.velocity
-        movers = shared.keep(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS)
-        if not len(movers):
-            return obstacles, moving
-        xy = movers.points[:, :2]
-        starts = movers.starts
-        lo, hi = np.minimum.reduceat(xy, starts, axis=0), np.maximum.reduceat(xy, starts, axis=0)
+            return own, moving
+        counts, velocity = shared.counts, shared.velocity
+        movers = (counts > 0) & (np.hypot(velocity[:, 0], velocity[:, 1]) > STATIC_MPS)
+        if not movers.any():
+            return own, moving
+        starts = np.cumsum(counts) - counts
+        points = np.ascontiguousarray(shared.points, dtype=np.float64)
+        lo, hi = _boxes(points, starts, counts, movers)
         center, extent = (lo + hi) / 2, hi - lo
-        vel = movers.velocity
-        length = np.maximum(extent.max(axis=1), 1.0).tolist()
-        width = np.maximum(extent.min(axis=1), 1.0).tolist()
-        heading = np.arctan2(vel[:, 1], vel[:, 0]).tolist()
-        for i in range(len(movers)):
-            obstacles.append(Obstacle(center[i], vel[i], length[i], width[i], view.t_sim_s, heading[i]))
-        _mark(moving, grid, movers.points)  # x and y of each point
-        return obstacles, moving
+        vel = velocity[movers]
+        received = Obstacles(center, vel, np.maximum(extent.max(axis=1), 1.0), np.maximum(extent.min(axis=1), 1.0),
+                             np.full(len(vel), view.t_sim_s), np.arctan2(vel[:, 1], vel[:, 0]))
+        _mark_objects(moving, grid, points, starts, counts, movers)
+        return Obstacles(*(np.concatenate([a, b]) for a, b in zip(own.columns(), received.columns()))), moving
 
 
 @contextmanager
@@ -135,6 +139,14 @@ def timed(timings_ms: dict[str, float], stage: str):
     cpu_key = f"{stage}_cpu"
     timings_ms[cpu_key] = timings_ms.get(cpu_key, 0.0) + (time.thread_time() - c0) * 1e3
     timings_ms[stage] = timings_ms.get(stage, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+def _mark_objects(mask: np.ndarray, grid, points: np.ndarray, starts: np.ndarray, counts: np.ndarray,
+                  objects: np.ndarray) -> None:
+    """``_mark`` the points (``points``, object after object, ``counts`` each from
+    ``starts``) of the objects where ``objects`` is set, without gathering them first."""
+    _mark_object_cells(np.ascontiguousarray(points, dtype=np.float64), starts, counts, objects, grid.i0, grid.j0,
+                       grid.spec.cell_m, exact_inverse(grid.spec.cell_m), mask)
 
 
 def _mark(mask: np.ndarray, grid, xy: np.ndarray) -> None:
@@ -162,6 +174,41 @@ def _mark_cells(xy, i0, j0, cell, inv, mask):
         row, col = np.int64(fy) - j0, np.int64(fx) - i0
         if 0 <= row < n and 0 <= col < n:
             mask[row, col] = True
+
+
+@njit(cache=True)
+def _mark_object_cells(points, starts, counts, objects, i0, j0, cell, inv, mask):
+    """``_mark_cells`` of the points of every object where ``objects`` is set (object k's
+    are ``points[starts[k]:starts[k] + counts[k]]``): replaces gathering them with a
+    boolean index (a copy of ~10 000 points per tick at 40 vehicles)."""
+    for k in range(objects.shape[0]):
+        if objects[k]:
+            _mark_cells(points[starts[k]:starts[k] + counts[k]], i0, j0, cell, inv, mask)
+
+
+@njit(cache=True)
+def _boxes(points, starts, counts, objects):
+    """(K', 2) each, the lower and upper x and y of the points of every object where
+    ``objects`` is set (object k's are ``points[starts[k]:starts[k] + counts[k]]``, at
+    least one): ``np.minimum.reduceat`` / ``np.maximum.reduceat`` over the gathered
+    objects, a NaN coordinate propagating as there, without gathering them."""
+    lo = np.empty((objects.sum(), 2))
+    hi = np.empty((objects.sum(), 2))
+    row = 0
+    for k in range(objects.shape[0]):
+        if not objects[k]:
+            continue
+        for d in range(2):
+            a = b = points[starts[k], d]
+            for p in range(starts[k] + 1, starts[k] + counts[k]):
+                v = points[p, d]
+                if v < a or v != v:  # once NaN, stays NaN: no value compares below it
+                    a = v
+                if v > b or v != v:
+                    b = v
+            lo[row, d], hi[row, d] = a, b
+        row += 1
+    return lo, hi
 
 
 def _retimed(traj: np.ndarray, t_now_s: float) -> np.ndarray:

@@ -15,6 +15,12 @@ from protocol.messages import Pose, VehicleSpec
 from vehicle_agent.paths import point_at, progress_along
 
 
+def clip(x: float, lo: float, hi: float) -> float:
+    """``float(np.clip(x, lo, hi))`` of one number, the same value (NaN stays NaN),
+    without the ~5 us of array machinery np.clip spends on a scalar."""
+    return float(min(max(x, lo), hi))
+
+
 @dataclass
 class LongitudinalPID:
     """Acceleration command that tracks a target speed."""
@@ -28,7 +34,7 @@ class LongitudinalPID:
 
     def run_step(self, target_mps: float, speed_mps: float) -> float:
         error = target_mps - speed_mps
-        self._integral = float(np.clip(self._integral + error * self.dt_s, -5.0, 5.0))
+        self._integral = clip(self._integral + error * self.dt_s, -5.0, 5.0)
         derivative = (error - self._last_error) / self.dt_s
         self._last_error = error
         return self.kp * error + self.ki * self._integral + self.kd * derivative
@@ -70,6 +76,6 @@ class VehicleController:
             accel = -self.spec.max_brake_mps2  # hold still
         else:
             accel = self.lon.run_step(target_mps, speed_mps)
-        accel = float(np.clip(accel, -self.spec.max_brake_mps2, self.spec.max_accel_mps2))
-        steer = float(np.clip(steer, -self.spec.max_steer_rad, self.spec.max_steer_rad))
+        accel = clip(accel, -self.spec.max_brake_mps2, self.spec.max_accel_mps2)
+        steer = clip(steer, -self.spec.max_steer_rad, self.spec.max_steer_rad)
         return accel, steer

@@ -24,6 +24,8 @@ when the conflict is gone.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +68,43 @@ class Obstacle:
 
 
 @dataclass(frozen=True, slots=True)
+class Obstacles:
+    """Obstacles as arrays, one row per ``Obstacle``: the planner's per-obstacle work runs
+    in whole-array passes (at 40 vehicles an agent avoids 30-70 moving objects, and one
+    small Python step per object was most of the planning stage's cost)."""
+
+    xy: np.ndarray  # float64 (O, 2)
+    velocity: np.ndarray  # float64 (O, 2)
+    length_m: np.ndarray  # float64 (O,)
+    width_m: np.ndarray  # float64 (O,)
+    t_sim_s: np.ndarray  # float64 (O,)
+    heading_rad: np.ndarray  # float64 (O,)
+
+    def __len__(self) -> int:
+        return len(self.length_m)
+
+    @staticmethod
+    def of(obstacles: Sequence[Obstacle]) -> Obstacles:
+        def column(values: list) -> np.ndarray:
+            return np.array(values, dtype=np.float64)
+
+        return Obstacles(column([o.xy for o in obstacles]).reshape(-1, 2),
+                         column([o.velocity for o in obstacles]).reshape(-1, 2),
+                         column([o.length_m for o in obstacles]), column([o.width_m for o in obstacles]),
+                         column([o.t_sim_s for o in obstacles]), column([o.heading_rad for o in obstacles]))
+
+    def columns(self) -> tuple[np.ndarray, ...]:
+        return self.xy, self.velocity, self.length_m, self.width_m, self.t_sim_s, self.heading_rad
+
+    def keep(self, rows: np.ndarray) -> Obstacles:
+        """The obstacles where ``rows`` (O,) is set."""
+        if rows.all():
+            return self
+        return Obstacles(self.xy[rows], self.velocity[rows], self.length_m[rows], self.width_m[rows],
+                         self.t_sim_s[rows], self.heading_rad[rows])
+
+
+@dataclass(frozen=True, slots=True)
 class Plan:
     path: np.ndarray  # (m, 2) world frame
     accel_mps2: float
@@ -79,23 +118,41 @@ class Plan:
 
 @njit(cache=True)
 def _inflate(obst, radius):
-    """Cells within ``radius`` cells (Euclidean) of an obstacle cell."""
+    """Cells within ``radius`` cells (Euclidean) of an obstacle cell: the disc painted
+    round each one a row run at a time (the run's half width at row offset dy is the
+    largest w with w^2 + dy^2 <= radius^2), not a test per cell of its square."""
     ny, nx = obst.shape
     out = np.zeros_like(obst)
-    r2 = radius * radius
+    half = np.empty(2 * radius + 1, dtype=np.int64)
+    for dy in range(-radius, radius + 1):
+        w = 0
+        while (w + 1) * (w + 1) + dy * dy <= radius * radius:
+            w += 1
+        half[dy + radius] = w
     for y in range(ny):
         for x in range(nx):
             if not obst[y, x]:
                 continue
             for dy in range(-radius, radius + 1):
                 yy = y + dy
-                if yy < 0 or yy >= ny:
-                    continue
-                for dx in range(-radius, radius + 1):
-                    xx = x + dx
-                    if 0 <= xx < nx and dx * dx + dy * dy <= r2:
-                        out[yy, xx] = True
+                if 0 <= yy < ny:
+                    w = half[dy + radius]
+                    out[yy, max(x - w, 0):min(x + w + 1, nx)] = True
     return out
+
+
+@njit(cache=True)
+def _blocked_passable(static, drivable, corridor, radius):
+    """``_inflate(static, radius)`` (the blocked cells) and the passable cells,
+    ``drivable & ~blocked & corridor``, in one kernel: replaces the inflation and three
+    whole-grid numpy passes (and their temporaries) of every tick."""
+    blocked = _inflate(static, radius)
+    passable = np.empty_like(blocked)
+    ny, nx = blocked.shape
+    for y in range(ny):
+        for x in range(nx):
+            passable[y, x] = drivable[y, x] and not blocked[y, x] and corridor[y, x]
+    return blocked, passable
 
 
 _DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
@@ -214,12 +271,14 @@ class RouteRaster(LatticeRaster):
         super().__init__(_distance_to_polyline(xs, ys, np.ascontiguousarray(route, dtype=np.float64)), i0, j0, np.inf)
 
 
-def path_from(path: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself."""
+def path_from(path: np.ndarray, xy: np.ndarray, s: np.ndarray | None = None, s0: float | None = None) -> np.ndarray:
+    """The rest of ``path`` from the point nearest ``xy``, starting at ``xy`` itself;
+    ``s`` and ``s0``: the path's ``arc_lengths`` and ``progress_along(path, xy)`` if the
+    caller has them."""
     if len(path) < 2:
         return path
-    s = arc_lengths(path)
-    s0 = progress_along(path, xy)
+    s = arc_lengths(path) if s is None else s
+    s0 = progress_along(path, xy, s) if s0 is None else s0
     rest = path[s > s0 + 1e-6]
     return np.vstack([xy[None, :], rest]) if len(rest) else np.vstack([xy[None, :], path[-1:]])
 
@@ -231,7 +290,7 @@ def path_until(path: np.ndarray, s: np.ndarray, s_end: float) -> np.ndarray:
     if s_end >= s[-1] or len(path) < 2:
         return path
     keep = int(np.searchsorted(s, s_end, side="right"))
-    return np.vstack([path[:keep], point_at(path, float(s_end)).reshape(1, 2)])
+    return np.vstack([path[:keep], point_at(path, float(s_end), s).reshape(1, 2)])
 
 
 @dataclass
@@ -243,8 +302,25 @@ class PathPlanner:
     replans: int = 0
     blocked: np.ndarray | None = None
     _route_raster: RouteRaster | None = None
+    _corridor_raster: LatticeRaster | None = None  # the route raster's cells within corridor_m
     _route_cum: np.ndarray | None = None
     _path_end: tuple[np.ndarray, float] | None = None  # a path and progress_along(path, its last point)
+    _path_cum: tuple[np.ndarray, np.ndarray] | None = None  # a path and its arc_lengths
+    _progress: tuple[np.ndarray, tuple[float, float], float] | None = None  # a path, a point, progress_along
+
+    def along(self, path: np.ndarray) -> np.ndarray:
+        """``arc_lengths(path)``, computed once for the path it keeps while it stays good."""
+        if self._path_cum is None or self._path_cum[0] is not path:
+            self._path_cum = (path, arc_lengths(path))
+        return self._path_cum[1]
+
+    def progress(self, path: np.ndarray, xy: np.ndarray) -> float:
+        """``progress_along(path, xy)``, computed once per path and point (the fast check
+        and ``path_from`` both ask where the vehicle is along the kept path)."""
+        key = (float(xy[0]), float(xy[1]))
+        if self._progress is None or self._progress[0] is not path or self._progress[1] != key:
+            self._progress = (path, key, progress_along(path, xy, self.along(path)))
+        return self._progress[2]
 
     @property
     def route_cum(self) -> np.ndarray:
@@ -260,12 +336,13 @@ class PathPlanner:
         """
         cfg = self.config
         radius = int(np.ceil((self.spec.width_m / 2 + cfg.margin_m) / grid.spec.cell_m))
-        blocked = _inflate(static_obstacles, radius)
-        self.blocked = blocked
         if self._route_raster is None:
             self._route_raster = RouteRaster(self.route, grid.spec.cell_m, cfg.corridor_m + 2.0)
-        dist = self._route_raster.window(grid.i0, grid.j0, grid.state.shape[0])
-        passable = grid.drivable & ~blocked & (dist <= cfg.corridor_m)
+            raster = self._route_raster
+            self._corridor_raster = LatticeRaster(raster.values <= cfg.corridor_m, raster.i0, raster.j0, False)
+        corridor = self._corridor_raster.window(grid.i0, grid.j0, grid.state.shape[0])  # dist <= corridor_m
+        blocked, passable = _blocked_passable(static_obstacles, grid.drivable, corridor, radius)
+        self.blocked = blocked
         s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]), self.route_cum)
         route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0), self.route_cum)
         if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
@@ -285,9 +362,10 @@ class PathPlanner:
         passable[start[0], start[1]] = True
         heading = int(np.round(pose.yaw_rad / (np.pi / 4))) % 8
         # search only the bounding box of the corridor: a band, not the whole 140 m grid
-        rows, cols = np.nonzero(passable)
-        r0, r1 = max(min(rows.min(), start[0], goal[0]) - 1, 0), min(max(rows.max(), start[0], goal[0]) + 2, n)
-        c0, c1 = max(min(cols.min(), start[1], goal[1]) - 1, 0), min(max(cols.max(), start[1], goal[1]) + 2, n)
+        rows, cols = np.flatnonzero(passable.any(axis=1)), np.flatnonzero(passable.any(axis=0))
+        r0, r1 = max(min(rows[0], start[0], goal[0]) - 1, 0), min(max(rows[-1], start[0], goal[0]) + 2, n)
+        c0, c1 = max(min(cols[0], start[1], goal[1]) - 1, 0), min(max(cols[-1], start[1], goal[1]) + 2, n)
+        dist = self._route_raster.window(grid.i0, grid.j0, n)
         extra = (cfg.route_weight * dist[r0:r1, c0:c1]).astype(np.float64)
         cells = _astar(np.ascontiguousarray(passable[r0:r1, c0:c1]), extra, int(start[0] - r0), int(start[1] - c0),
                        heading, int(goal[0] - r0), int(goal[1] - c0), cfg.turn_weight * max(speed_mps, 1.0))
@@ -303,16 +381,15 @@ class PathPlanner:
     def _still_good(self, grid: Grid, passable: np.ndarray, pose: Pose, route_ahead: np.ndarray) -> bool:
         """The fast check: the old path's remaining cells are passable and it still leads ahead."""
         path = self.path
-        s = progress_along(path, np.array([pose.x_m, pose.y_m]))
+        cum = self.along(path)
+        s = self.progress(path, np.array([pose.x_m, pose.y_m]))
         if self._path_end is None or self._path_end[0] is not path:  # the path is kept while it stays good
-            self._path_end = (path, progress_along(path, path[-1]))
+            self._path_end = (path, progress_along(path, path[-1], cum))
         end = self._path_end[1]
         if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or end - s < 15.0:
             return False
-        rc = grid.cell_of(point_at(path, s + np.arange(0.0, end - s, 0.5)))
-        n = grid.state.shape[0]
-        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-        return bool(passable[rc[inside, 0], rc[inside, 1]].all())
+        ahead = point_at(path, s + np.arange(0.0, end - s, 0.5), cum)
+        return bool((_cell_values(passable, ahead, grid.i0, grid.j0, grid.spec.cell_m) != 0).all())
 
 
 def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:
@@ -374,18 +451,33 @@ def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
 # ------------------------------------------------------------------------ speed / conflicts
 
 
-def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5) -> float | None:
-    """Distance along the path of its first cell inside an (inflated) static obstacle."""
+@njit(cache=True)
+def _cell_values(mask, xy, i0, j0, cell):
+    """(P,) int8: 1 where point ``xy[p]`` falls in a set cell of ``mask`` (the grid with
+    cell (0, 0) at lattice (i0, j0)), 0 in an unset one, -1 outside the grid: replaces
+    ``grid.cell_of``, the inside test and the lookup (about ten numpy calls)."""
+    n_r, n_c = mask.shape
+    out = np.full(xy.shape[0], -1, dtype=np.int8)
+    for p in range(xy.shape[0]):
+        fx, fy = np.floor(xy[p, 0] / cell), np.floor(xy[p, 1] / cell)
+        if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
+            continue
+        row, col = np.int64(fy) - j0, np.int64(fx) - i0
+        if 0 <= row < n_r and 0 <= col < n_c:
+            out[p] = 1 if mask[row, col] else 0
+    return out
+
+
+def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5,
+                  s_path: np.ndarray | None = None) -> float | None:
+    """Distance along the path of its first cell inside an (inflated) static obstacle;
+    ``s_path``: the path's ``arc_lengths`` if the caller has them."""
     if len(path) < 2:
         return None
-    cum = arc_lengths(path)
+    cum = arc_lengths(path) if s_path is None else s_path
     s = np.arange(0.5, cum[-1], step_m)
-    rc = grid.cell_of(point_at(path, s))
-    n = blocked.shape[0]
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-    hit = np.zeros(len(s), dtype=bool)
-    hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
-    return float(s[np.argmax(hit)]) if hit.any() else None
+    hit = np.flatnonzero(_cell_values(blocked, point_at(path, s, cum), grid.i0, grid.j0, grid.spec.cell_m) == 1)
+    return float(s[hit[0]]) if len(hit) else None
 
 
 def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:
@@ -399,14 +491,27 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
     return t
 
 
-def _body_centers(path: np.ndarray, spec: VehicleSpec) -> tuple[np.ndarray, float]:
+def _body_centers(path: np.ndarray, spec: VehicleSpec, full: np.ndarray) -> tuple[np.ndarray, float]:
     """(3, M, 2) the ego's rear, middle and front circle centres at each path point, and
     their radius, the half width: exact across the body (a car in the next lane is
-    as far as it is), short of the corners by 0.37 m diagonally at most."""
-    full = arc_lengths(path)
+    as far as it is), short of the corners by 0.37 m diagonally at most. ``full``: the
+    path's ``arc_lengths``."""
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-    centers = np.stack([point_at(path, full - body_half), path, point_at(path, full + body_half)])
-    return np.ascontiguousarray(centers, dtype=np.float64), float(spec.width_m / 2)
+    m = len(path)
+    centers = np.empty((3, m, 2))
+    # rear and front in one point_at (np.interp's value at a point does not depend on the others)
+    centers[0::2] = point_at(path, np.concatenate([full - body_half, full + body_half]), full).reshape(2, m, 2)
+    centers[1] = path
+    return centers, float(spec.width_m / 2)
+
+
+@njit(cache=True)
+def _below(dx, dy, reach):
+    """``np.hypot(dx, dy) < reach``, without the hypot where one leg alone reaches: a
+    (faithfully rounded) hypot is never below its longer leg, so the answer is the same."""
+    if abs(dx) >= reach or abs(dy) >= reach:
+        return False
+    return np.hypot(dx, dy) < reach
 
 
 @njit(cache=True)
@@ -422,15 +527,18 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     n_c, m_pts = centers.shape[0], centers.shape[1]
     n_obs, n_k = xy.shape[0], times.shape[1]
     out = np.zeros((m_pts, n_obs), dtype=np.bool_)
+    t_min, t_max = np.empty(times.shape[0]), np.empty(times.shape[0])  # each row's time span
+    for row in range(times.shape[0]):
+        t_lo, t_hi = times[row, 0], times[row, 0]
+        for k in range(1, n_k):
+            t_lo = min(t_lo, times[row, k])
+            t_hi = max(t_hi, times[row, k])
+        t_min[row], t_max[row] = t_lo, t_hi
     for o in range(n_obs):
         bound = reach_m + np.hypot(half[o, 0], half[o, 1]) + 1e-6
         for m in range(m_pts):
             row = m if times.shape[0] > 1 else 0
-            t_lo, t_hi = times[row, 0], times[row, 0]
-            for k in range(1, n_k):
-                t_lo = min(t_lo, times[row, k])
-                t_hi = max(t_hi, times[row, k])
-            t_lo, t_hi = t_lo + dt_obs[o], t_hi + dt_obs[o]
+            t_lo, t_hi = t_min[row] + dt_obs[o], t_max[row] + dt_obs[o]
             ax, ay = xy[o, 0] + vel[o, 0] * t_lo, xy[o, 1] + vel[o, 1] * t_lo
             bx, by = xy[o, 0] + vel[o, 0] * t_hi - ax, xy[o, 1] + vel[o, 1] * t_hi - ay
             len2 = bx * bx + by * by
@@ -438,7 +546,7 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
             for c in range(n_c):
                 px, py = centers[c, m, 0] - ax, centers[c, m, 1] - ay
                 f = 0.0 if len2 <= 0.0 else min(max((px * bx + py * by) / len2, 0.0), 1.0)
-                if np.hypot(px - f * bx, py - f * by) < bound:
+                if _below(px - f * bx, py - f * by, bound):
                     far = False
                     break
             if far:
@@ -450,7 +558,7 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
                     dx, dy = centers[c, m, 0] - ox, centers[c, m, 1] - oy
                     u = abs(dx * cos_h[o] + dy * sin_h[o]) - half[o, 0]  # along the obstacle
                     v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half[o, 1]  # across it
-                    if np.hypot(max(u, 0.0), max(v, 0.0)) < reach_m:
+                    if _below(max(u, 0.0), max(v, 0.0), reach_m):
                         out[m, o] = True
                         break
                 if out[m, o]:
@@ -458,8 +566,22 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     return out
 
 
-def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: list[Obstacle],
-                   t_now_s: float, cfg: PlannerConfig) -> float | None:
+@functools.cache
+def _time_offsets(window_s: float) -> np.ndarray:
+    """The 7 times around a waypoint's arrival time that ``first_conflict`` tests (one
+    array for every call: never written)."""
+    return np.linspace(-window_s, window_s, 7)
+
+
+@functools.cache
+def _sweep_times(horizon_s: float) -> np.ndarray:
+    """(1, T) the times over which ``first_conflict`` sweeps an obstacle's zone (one
+    array for every call: never written)."""
+    return np.arange(0.0, horizon_s + 1e-9, 0.25)[None, :]
+
+
+def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: Obstacles | Sequence[Obstacle],
+                   t_now_s: float, cfg: PlannerConfig, s_path: np.ndarray | None = None) -> float | None:
     """Where the vehicle must stop for the moving obstacles, or None.
 
     An obstacle conflicts when it will come within ``safety_m`` of the vehicle's body
@@ -474,22 +596,24 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     passing in the next lane) needs no stop. A vehicle already inside a zone (it
     learnt of the car only once out in its lane) drives on out of it unless the
     conflict itself falls before it is out: stopping there would wait in the car's way.
+
+    ``s_path``: the path's ``arc_lengths`` if the caller has them.
     """
-    if not obstacles or len(path) < 2:
+    if not isinstance(obstacles, Obstacles):
+        obstacles = Obstacles.of(obstacles)
+    if not len(obstacles) or len(path) < 2:
         return None
-    s = arc_lengths(path)
+    s = arc_lengths(path) if s_path is None else s_path
     within = t_path <= cfg.horizon_s
     if not within.any():
         return None
     path, s, t_path = path[within], s[within], t_path[within]
-    xy = np.array([o.xy for o in obstacles])  # (O, 2)
-    vel = np.array([o.velocity for o in obstacles])
-    dt_obs = np.array([t_now_s - o.t_sim_s for o in obstacles])
-    half = np.array([[o.length_m / 2, o.width_m / 2] for o in obstacles])  # (O, 2)
-    cos_h = np.cos([o.heading_rad for o in obstacles])
-    sin_h = np.sin([o.heading_rad for o in obstacles])
-    centers, radius = _body_centers(path, spec)
-    offsets = np.linspace(-cfg.time_window_s, cfg.time_window_s, 7)
+    xy, vel = obstacles.xy, obstacles.velocity  # (O, 2)
+    dt_obs = t_now_s - obstacles.t_sim_s
+    half = np.column_stack([obstacles.length_m / 2, obstacles.width_m / 2])  # (O, 2)
+    cos_h, sin_h = np.cos(obstacles.heading_rad), np.sin(obstacles.heading_rad)
+    centers, radius = _body_centers(path, spec, s)
+    offsets = _time_offsets(cfg.time_window_s)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
     timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
     timed[s < 0.5] = False  # where the vehicle already is
@@ -497,7 +621,7 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     if not conflicting.any():
         return None
     c = conflicting
-    sweep_t = np.arange(0.0, cfg.horizon_s + 1e-9, 0.25)[None, :]  # the same times at every waypoint
+    sweep_t = _sweep_times(cfg.horizon_s)  # the same times at every waypoint
     zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
                  radius + cfg.wait_clear_m)  # (M, O')
     first = zone.any(axis=1)
@@ -522,11 +646,12 @@ def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_
     """Waypoints [x, y, t] every ``step_s`` along ``path``, from ``v0`` towards the cruise
     speed at ``accel``: what the control message shares (``Planner.run_step``)."""
     t = np.arange(0.0, horizon_s + 1e-9, step_s)
+    if len(path) < 2:  # standing at its one point
+        return np.column_stack([np.repeat(path[:1], len(t), axis=0), t_now_s + t]).astype(np.float32)
     s = np.array([_distance_with(v0, v_cruise, accel, x) for x in t])
-    cum = arc_lengths(path) if len(path) > 1 else [0.0]
+    cum = arc_lengths(path)
     s = np.minimum(s, cum[-1])
-    xy = point_at(path, s) if len(path) > 1 else np.repeat(path[:1], len(t), axis=0)
-    return np.column_stack([xy, t_now_s + t]).astype(np.float32)
+    return np.column_stack([point_at(path, s, cum), t_now_s + t]).astype(np.float32)
 
 
 def _distance_with(v0: float, v_cruise: float, accel: float, t: float) -> float:
@@ -546,6 +671,7 @@ class Planner:
     config: PlannerConfig = field(default_factory=PlannerConfig)
     path_planner: PathPlanner = field(init=False)
     last: Plan | None = None
+    _onward_from: tuple[tuple[float, float], float] | None = None  # a path's end and its progress along the route
 
     def __post_init__(self) -> None:
         self.path_planner = PathPlanner(np.asarray(self.mission.route, dtype=float), self.mission.spec, self.config)
@@ -561,30 +687,48 @@ class Planner:
         """``path`` continued along the route for as far as the shared horizon reaches at
         the cruise speed (the planned path ends ``lookahead_m`` ahead)."""
         route, cum = self.path_planner.route, self.path_planner.route_cum
-        s_end = progress_along(route, path[-1], cum)
+        end = (float(path[-1, 0]), float(path[-1, 1]))
+        if self._onward_from is None or self._onward_from[0] != end:  # a kept path keeps its end
+            self._onward_from = (end, progress_along(route, path[-1], cum))
+        s_end = self._onward_from[1]
         extra = min(cruise * SHARED_HORIZON_S, cum[-1] - s_end)
         if extra < 1.0:
             return path
         return np.vstack([path, point_at(route, s_end + np.arange(1.0, extra + 1e-9, 1.0), cum)])
 
-    def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, obstacles: list[Obstacle],
-                 pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
+    @property
+    def holds_still(self) -> bool:
+        """A waiting vehicle (no cruise speed): its plan is to hold still, whatever it sees."""
+        return self.mission.cruise_speed_mps <= 0.0
+
+    def hold(self, pose: Pose, t_now_s: float) -> Plan:
+        """The plan of a vehicle that ``holds_still``: full brake where it is."""
+        here = np.array([[pose.x_m, pose.y_m]])
+        traj = trajectory_of(here, 0.0, 0.0, self.config.comfort_accel_mps2, t_now_s)
+        return Plan(here, -self.mission.spec.max_brake_mps2, traj, None, True)
+
+    def run_step(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray,
+                 obstacles: Obstacles | Sequence[Obstacle], pose: Pose, speed_mps: float, t_now_s: float) -> Plan:
         cfg, spec = self.config, self.mission.spec
         cruise = self.mission.cruise_speed_mps
-        if cruise <= 0.0:  # a waiting vehicle holds still
-            here = np.array([[pose.x_m, pose.y_m]])
-            traj = trajectory_of(here, 0.0, 0.0, cfg.comfort_accel_mps2, t_now_s)
-            return Plan(here, -spec.max_brake_mps2, traj, None, True)
+        if self.holds_still:
+            return self.hold(pose, t_now_s)
         static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         # a reused path starts where the vehicle was when it was planned: distances and
         # arrival times count from where the vehicle is now
-        path = path_from(self.path_planner.plan(grid, static, pose, speed_mps), np.array([pose.x_m, pose.y_m]))
+        planner, here = self.path_planner, np.array([pose.x_m, pose.y_m])
+        planned = planner.plan(grid, static, pose, speed_mps)
+        path = path_from(planned, here, planner.along(planned), planner.progress(planned, here))
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
-        moving = [Obstacle(o.xy, o.velocity, max(o.length_m, MOVER_MIN_DIMS_M[0]), max(o.width_m, MOVER_MIN_DIMS_M[1]),
-                           o.t_sim_s, o.heading_rad) for o in obstacles if np.hypot(*o.velocity) > STATIC_MPS]
-        conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg),
-                                 first_blocked(path, grid, self.path_planner.blocked)) if c is not None]
+        if not isinstance(obstacles, Obstacles):
+            obstacles = Obstacles.of(obstacles)
+        vel = obstacles.velocity
+        moving = obstacles.keep(np.hypot(vel[:, 0], vel[:, 1]) > STATIC_MPS)
+        moving = Obstacles(moving.xy, moving.velocity, np.maximum(moving.length_m, MOVER_MIN_DIMS_M[0]),
+                           np.maximum(moving.width_m, MOVER_MIN_DIMS_M[1]), moving.t_sim_s, moving.heading_rad)
+        conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg, s),
+                                 first_blocked(path, grid, self.path_planner.blocked, s_path=s)) if c is not None]
         conflict = min(conflicts) if conflicts else None
         braking, accel, stop_at = False, cfg.comfort_accel_mps2 * np.sign(cruise - speed_mps), None
         if abs(cruise - speed_mps) < 0.2:

@@ -16,7 +16,7 @@ import numpy as np
 from channel_proxy.emp import voronoi_segment
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
-from vehicle_agent.agent import Agent, _mark_cells
+from vehicle_agent.agent import Agent, _boxes, _mark_cells, _mark_object_cells
 from vehicle_agent.agreement import AgreementConfig, decide
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
@@ -56,6 +56,10 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     warm_fusion_kernels()
     warm_payload_kernels()
     _mark_cells(np.zeros((1, 2)), 0, 0, 0.5, 2.0, np.zeros((2, 2), dtype=np.bool_))  # movers' cells: none here
+    one = np.ones(1, dtype=np.int64)  # a received mover's cells: none here either
+    _mark_object_cells(np.zeros((1, 3)), one - 1, one, np.ones(1, dtype=np.bool_), 0, 0, 0.5, 2.0,
+                       np.zeros((2, 2), dtype=np.bool_))
+    _boxes(np.zeros((1, 3)), one - 1, one, np.ones(1, dtype=np.bool_))  # ... and its box
     key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous
     oid = np.zeros(1, dtype=np.int64)
     key.setflags(write=False)

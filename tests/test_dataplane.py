@@ -970,6 +970,16 @@ def _visible_share_reference(viewers, ranges, targets, occluders, target_as_occl
     return share
 
 
+def _crowded_footprints(rng: np.random.Generator, n_targets: int, n_buildings: int) -> np.ndarray:
+    """(n_targets + n_buildings, 4, 2) random footprints in a 120 m square: targets of
+    0.5-12 x 0.5-3 m, then buildings of 10-60 m a side."""
+    n = n_targets + n_buildings
+    boxes = np.column_stack([rng.uniform(-60, 60, n), rng.uniform(-60, 60, n), rng.uniform(-np.pi, np.pi, n),
+                             np.r_[rng.uniform(0.5, 12, n_targets), rng.uniform(10, 60, n_buildings)],
+                             np.r_[rng.uniform(0.5, 3, n_targets), rng.uniform(10, 60, n_buildings)]])
+    return np.array([box_corners(*b) for b in boxes]).reshape(-1, 4, 2)
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_visible_share_equals_testing_every_occluder_on_every_ray(seed):
@@ -981,11 +991,7 @@ def test_visible_share_equals_testing_every_occluder_on_every_ray(seed):
 
     rng = np.random.default_rng(seed)
     n_t, n_b, n_v = int(rng.integers(0, 25)), int(rng.integers(0, 6)), int(rng.integers(1, 30))
-    boxes = np.column_stack([rng.uniform(-60, 60, n_t + n_b), rng.uniform(-60, 60, n_t + n_b),
-                             rng.uniform(-np.pi, np.pi, n_t + n_b),
-                             np.r_[rng.uniform(0.5, 12, n_t), rng.uniform(10, 60, n_b)],
-                             np.r_[rng.uniform(0.5, 3, n_t), rng.uniform(10, 60, n_b)]])
-    corners = np.array([box_corners(*b) for b in boxes]).reshape(-1, 4, 2)
+    corners = _crowded_footprints(rng, n_t, n_b)
     targets = corners[:n_t]
     viewers = np.concatenate([rng.uniform(-70, 70, (n_v, 2)), corners[:min(n_t, 3), 0] * 0.999]).reshape(-1, 2)
     ranges = rng.uniform(20, 120, len(viewers))
@@ -1019,11 +1025,7 @@ def test_visible_stops_casting_once_v_is_settled_and_agrees_with_the_share(seed,
 
     rng = np.random.default_rng(seed)
     n_t, n_b, n_v = int(rng.integers(0, 20)), int(rng.integers(0, 5)), int(rng.integers(1, 25))
-    boxes = np.column_stack([rng.uniform(-60, 60, n_t + n_b), rng.uniform(-60, 60, n_t + n_b),
-                             rng.uniform(-np.pi, np.pi, n_t + n_b),
-                             np.r_[rng.uniform(0.5, 12, n_t), rng.uniform(10, 60, n_b)],
-                             np.r_[rng.uniform(0.5, 3, n_t), rng.uniform(10, 60, n_b)]])
-    corners = np.array([box_corners(*b) for b in boxes]).reshape(-1, 4, 2)
+    corners = _crowded_footprints(rng, n_t, n_b)
     viewers = rng.uniform(-70, 70, (n_v, 2))
     ranges = rng.uniform(20, 120, n_v)
     args = (viewers, ranges, corners[:n_t], corners, np.arange(n_t))

@@ -341,7 +341,8 @@ def unscheduled_after(own: ControlMsg, sent: Iterable[int]) -> dict[int, int]:
     om = own.objects
     y = (1.0 - np.asarray(om.visibility, dtype=np.float64)) * np.asarray(om.relevance, dtype=np.float64)
     wanted = np.any(y > 0.0, axis=1) if y.size else np.zeros(len(om.object_id), dtype=bool)
-    skipped = wanted & ~np.isin(np.asarray(om.object_id, dtype=np.int64), np.fromiter(sent, dtype=np.int64))
+    sent_ids = {int(k) for k in sent}  # a set, not np.isin: ~10 objects, isin's sort cost 20 us
+    skipped = wanted & np.array([k not in sent_ids for k in np.asarray(om.object_id).tolist()], dtype=bool)
     m = own.starvation() + 1
     return {int(k): int(c) for k, c in zip(np.asarray(om.object_id)[skipped].tolist(), m[skipped].tolist())}
 

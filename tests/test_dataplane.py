@@ -193,7 +193,8 @@ def test_labels_equal_labelling_the_mask_then_merging_shadows(seed):
     order = np.flatnonzero(labels.ravel())
     order = order[np.argsort(labels.ravel()[order], kind="stable")]
     np.testing.assert_array_equal(got_cells, np.stack([order % n + grid.i0, order // n + grid.j0], axis=1))
-    np.testing.assert_array_equal(bounds, np.concatenate([[0], np.cumsum(np.bincount(labels.ravel(), minlength=k + 1)[1:])]))
+    counts = np.bincount(labels.ravel(), minlength=k + 1)[1:]
+    np.testing.assert_array_equal(bounds, np.concatenate([[0], np.cumsum(counts)]))
 
 
 def _quad(cx, cy, yaw, length, width):

@@ -96,7 +96,8 @@ class Agent:
         # obstacles alone (Planner.run_step, the same speed test)
         xy, vel, length, width, heading, cells = [], [], [], [], [], []
         tracks = view.tracks
-        speed = np.hypot(*np.array([tr.velocity for tr in tracks], dtype=np.float64).reshape(-1, 2).T)  # Track.speed_mps
+        velocity = np.array([tr.velocity for tr in tracks], dtype=np.float64).reshape(-1, 2)
+        speed = np.hypot(velocity[:, 0], velocity[:, 1])  # Track.speed_mps
         for k in np.flatnonzero(speed > STATIC_MPS).tolist():  # the moving few: one step each
             tr = tracks[k]
             det = tr.detection

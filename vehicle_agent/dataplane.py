@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
+from vehicle_agent.agreement import HeardControl
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse, shared_now
@@ -24,7 +25,6 @@ from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid
                                       scan_grid, scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
 from vehicle_agent.tracking import Track, Tracker
-from vehicle_agent.agreement import HeardControl
 
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)

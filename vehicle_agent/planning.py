@@ -569,15 +569,19 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
 @functools.cache
 def _time_offsets(window_s: float) -> np.ndarray:
     """The 7 times around a waypoint's arrival time that ``first_conflict`` tests (one
-    array for every call: never written)."""
-    return np.linspace(-window_s, window_s, 7)
+    array for every call, read-only)."""
+    out = np.linspace(-window_s, window_s, 7)
+    out.setflags(write=False)
+    return out
 
 
 @functools.cache
 def _sweep_times(horizon_s: float) -> np.ndarray:
     """(1, T) the times over which ``first_conflict`` sweeps an obstacle's zone (one
-    array for every call: never written)."""
-    return np.arange(0.0, horizon_s + 1e-9, 0.25)[None, :]
+    array for every call, read-only)."""
+    out = np.arange(0.0, horizon_s + 1e-9, 0.25)[None, :]
+    out.setflags(write=False)
+    return out
 
 
 def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obstacles: Obstacles | Sequence[Obstacle],
@@ -718,7 +722,8 @@ class Planner:
         # arrival times count from where the vehicle is now
         planner, here = self.path_planner, np.array([pose.x_m, pose.y_m])
         planned = planner.plan(grid, static, pose, speed_mps)
-        path = path_from(planned, here, planner.along(planned), planner.progress(planned, here))
+        path = path_from(planned, here, planner.along(planned), planner.progress(planned, here)) \
+            if len(planned) >= 2 else planned
         s = arc_lengths(path)
         t_path = arrival_times(s, speed_mps, cruise, cfg.comfort_accel_mps2)
         if not isinstance(obstacles, Obstacles):

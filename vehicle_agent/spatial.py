@@ -86,8 +86,11 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
     until ``seen >= need`` is settled either way, and its share is then 1.0 or 0.0.
 
     An occluder's angular extent and inside test are worked out for a viewer only once
-    a target asks (``_UNKNOWN`` until then), and never for an occluder no nearer than
-    the target's farthest corner: no ray to the target can meet it first."""
+    a target asks (``_UNKNOWN`` until then), and never for an occluder whose nearest
+    corner is beyond the target's farthest one: the per-ray test skips an occluder whose
+    nearest corner is no nearer than the ray's hit (``occ_near >= t_target``), so it
+    would skip that one on every ray. (The nearest corner, not the nearest point: a
+    long wall close to the viewer can be skipped by both; kept as it was.)"""
     J, K, O = viewers.shape[0], targets.shape[0], occluders.shape[0]
     share = np.zeros((J, K))
     occ_lo = np.empty(O)

@@ -17,7 +17,7 @@ from channel_proxy.emp import voronoi_segment
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent, _boxes, _mark_cells, _mark_object_cells
-from vehicle_agent.agreement import AgreementConfig, decide
+from vehicle_agent.agreement import AgreementConfig, HeardControl, decide
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.payload import warm_kernels as warm_payload_kernels
@@ -26,8 +26,7 @@ from vehicle_agent.paths import arc_lengths
 from vehicle_agent.perception import build_grid, extract_objects
 from vehicle_agent.planning import Obstacle, first_conflict
 from vehicle_agent.scheduler.state import _merge_join
-from vehicle_agent.tracking import registered_velocity
-from vehicle_agent.tracking import associate
+from vehicle_agent.tracking import associate, registered_velocity
 
 
 def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
@@ -43,10 +42,11 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     other_msg = _as_received(ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
                                         np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
                                         agent.dataplane.object_map(view, []), np.array([m.vid], np.int64)))
-    agent.dataplane.neighbors.update([other_msg])
+    heard = HeardControl.read(encode(other_msg))  # as the link reads it: the codec's field index is built
+    agent.dataplane.neighbors.update([heard])
     # every object once unscheduled: the scheduler state's join of starvation counters loads too
     own = agent.control_message(view, scan, heard=[other], unscheduled={t.track_id: 1 for t in view.tracks})
-    slots = plan_transmissions(decide(m.vid, 0, own, [other_msg], agreement), agreement)
+    slots = plan_transmissions(decide(m.vid, 0, own, [heard], agreement), agreement)
     payloads = agent.dataplane.payloads(view, [t.track_id for t in view.tracks])
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots

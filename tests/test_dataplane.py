@@ -14,7 +14,7 @@ from vehicle_agent.frames import ray_tables, scan_to_world, sensor_to_world, wor
 from vehicle_agent.payload import MAX_ERROR_M, ObjectPayload, decode_object, encode_object, payload_size
 from vehicle_agent.perception import (ABOVE, EMPTY, GROUND, DrivableRaster, Grid, GridSpec, _cells_by_label,
                                       _labels, _merge_shadowed, _object_stats, build_grid, extract_objects,
-                                      label_components, scan_grid, scan_objects)
+                                      scan_grid, scan_objects)
 from vehicle_agent.spatial import _inside, _ray_rect, relevance, sample_trajectory, visibility, visible_share
 from vehicle_agent.tracking import Tracker
 from world_server import lidar
@@ -156,6 +156,36 @@ def _two_parts(between: int) -> Grid:
     state[rows, cols(11, 13)] = between
     state[rows, cols(10, 11)] = state[rows, cols(13, 14)] = ABOVE
     return Grid(spec, i0, j0, state, np.ones((n, n), dtype=bool))
+
+
+@njit
+def label_components(mask, reach):
+    """The slower reference for ``perception._components``: components of a boolean
+    grid where cells up to ``reach`` cells apart (Chebyshev) connect, seeded by a scan
+    of every cell. Labels 1..k, and k."""
+    ny, nx = mask.shape
+    labels = np.zeros((ny, nx), dtype=np.int32)
+    stack = np.empty(ny * nx, dtype=np.int64)
+    k = 0
+    for y in range(ny):
+        for x in range(nx):
+            if not mask[y, x] or labels[y, x] != 0:
+                continue
+            k += 1
+            labels[y, x] = k
+            stack[0] = y * nx + x
+            top = 1
+            while top > 0:
+                top -= 1
+                cy, cx = divmod(stack[top], nx)
+                for dy in range(-reach, reach + 1):
+                    for dx in range(-reach, reach + 1):
+                        yy, xx = cy + dy, cx + dx
+                        if 0 <= yy < ny and 0 <= xx < nx and mask[yy, xx] and labels[yy, xx] == 0:
+                            labels[yy, xx] = k
+                            stack[top] = yy * nx + xx
+                            top += 1
+    return labels, k
 
 
 @pytest.mark.parametrize("between, parts", [(EMPTY, 1), (GROUND, 2)])

@@ -122,36 +122,6 @@ def _bin(world, i0, j0, cell, n, clear, state, cell_idx):
 
 
 @njit(cache=True)
-def label_components(mask, reach):
-    """Components of a boolean grid where cells up to ``reach`` cells apart (Chebyshev)
-    connect: reach 1 is 8-connectivity; larger reaches bridge the gaps a LiDAR's rings
-    and columns leave on surfaces seen at a grazing angle. Labels 1..k, and k."""
-    ny, nx = mask.shape
-    labels = np.zeros((ny, nx), dtype=np.int32)
-    stack = np.empty(ny * nx, dtype=np.int64)
-    k = 0
-    for y in range(ny):
-        for x in range(nx):
-            if not mask[y, x] or labels[y, x] != 0:
-                continue
-            k += 1
-            labels[y, x] = k
-            stack[0] = y * nx + x
-            top = 1
-            while top > 0:
-                top -= 1
-                cy, cx = divmod(stack[top], nx)
-                for dy in range(-reach, reach + 1):
-                    for dx in range(-reach, reach + 1):
-                        yy, xx = cy + dy, cx + dx
-                        if 0 <= yy < ny and 0 <= xx < nx and mask[yy, xx] and labels[yy, xx] == 0:
-                            labels[yy, xx] = k
-                            stack[top] = yy * nx + xx
-                            top += 1
-    return labels, k
-
-
-@njit(cache=True)
 def _above_cells(state, drivable):
     """The flat indices, in grid order, of the ABOVE cells on the drivable area."""
     flat_state, flat_drivable = state.ravel(), drivable.ravel()
@@ -166,9 +136,11 @@ def _above_cells(state, drivable):
 
 @njit(cache=True)
 def _components(state, drivable, reach, cells):
-    """``label_components`` of the ABOVE cells on the drivable area, ``cells`` (their
-    flat indices in grid order): (labels, k). Replaces numpy's mask and a scan of the
-    whole grid for seeds (labels are numbered in the same order: by lowest cell)."""
+    """Components of the ABOVE cells on the drivable area, ``cells`` (their flat indices
+    in grid order), where cells up to ``reach`` cells apart (Chebyshev) connect: reach 1
+    is 8-connectivity; larger reaches bridge the gaps a LiDAR's rings and columns leave
+    on surfaces seen at a grazing angle. Labels 1..k (numbered by lowest cell), and k;
+    only the given cells are visited, no mask of the whole grid is built."""
     ny, nx = state.shape
     m = len(cells)
     labels = np.zeros((ny, nx), dtype=np.int32)

@@ -546,9 +546,7 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
             for i in range(count):
                 if tested and mine[i]:
                     continue
-                x, y = pool[start + i, 0] + sx, pool[start + i, 1] + sy
-                if back:
-                    x, y = x - sx, y - sy
+                x, y = _placed_xy(pool, start + i, sx, sy, back)
                 if inv > 0.0:
                     fx, fy = np.floor(x * inv), np.floor(y * inv)
                 else:
@@ -565,13 +563,21 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
             for i in range(count):
                 if tested and mine[i]:
                     continue
-                x, y = pool[start + i, 0] + sx, pool[start + i, 1] + sy
-                if back:
-                    x, y = x - sx, y - sy
+                x, y = _placed_xy(pool, start + i, sx, sy, back)
                 out[q, 0], out[q, 1], out[q, 2] = x, y, pool[start + i, 2]
                 q += 1
         kept[k], kept_counts[k], merged[k] = keep, count - hits, back
     return out[:q], kept, kept_counts, merged
+
+
+@njit(cache=True)
+def _placed_xy(pool, p, sx, sy, back):
+    """Where ``_shared_now`` places pool point ``p``: shifted by (sx, sy), or where it
+    was captured when its object is merged back (the shift added, then taken off)."""
+    x, y = pool[p, 0] + sx, pool[p, 1] + sy
+    if back:
+        x, y = x - sx, y - sy
+    return x, y
 
 
 @njit(cache=True)

@@ -125,6 +125,8 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
         flags.append("--ego-reports")
     if cfg.signing:
         flags += ["--authority", _authority(cfg)]
+    if needs_proxy(cfg.scheme):  # the agents' tick-0 messages go through the proxy: it must be subscribed
+        flags.append("--wait-for-proxy")
     if cfg.wait_for:
         flags += ["--wait-for", *cfg.wait_for]
     return tuple(flags)

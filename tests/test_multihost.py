@@ -156,6 +156,8 @@ def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_pa
     assert generated == hosts.compose(options(tmp_path, "--run-id", "compose").run, hf)  # the emitter is YAML
     services = checked_in["services"]
     assert services.keys() == generated["services"].keys()
+    for name, s in generated["services"].items():  # the checked-in file is what the launcher makes today
+        assert services[name]["command"] == [w.replace(str(tmp_path), "runs") for w in s["command"]], name
     routers = {f"router-{h.name}": h for h in hf.hosts}
     procs = [n for n in services if n not in routers]
     assert sorted(procs) == sorted(["recorder", "world", "proxy"] + [f"agent{v}" for v in range(5)])

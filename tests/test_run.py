@@ -299,6 +299,15 @@ def test_wait_for_reaches_the_world_and_only_the_world():
     assert not any("--wait-for" in spec.args for spec in table.processes(opts.run) if spec.name != table.WORLD)
 
 
+@pytest.mark.parametrize("scheme", ["single", "lane", "emp", "agnostic", "autocast"])
+def test_the_world_waits_for_the_proxy_exactly_when_the_run_has_one(scheme):
+    """Tick 0's messages go through the proxy: a world that ticked before the proxy had
+    subscribed lost them, and two runs of one seed differed by which process won."""
+    opts = options_from(parse_args(["--run-id", "w", "--scheme", scheme]), hub="tcp/127.0.0.1:1")
+    has_proxy = any(spec.name == table.PROXY for spec in table.processes(opts.run))
+    assert ("--wait-for-proxy" in table.world_args(opts.run)) == has_proxy == (scheme not in ("single", "lane"))
+
+
 def test_the_cli_refuses_a_bad_flag_before_starting_anything(tmp_path):
     p = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--out", str(tmp_path), "--vehicles", "500"],
                        capture_output=True, text=True, timeout=60)

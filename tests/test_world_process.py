@@ -241,11 +241,15 @@ def test_told_that_the_ego_reports_the_world_waits_for_its_first_report(procs, h
 
 
 @pytest.mark.heavy
-def test_told_to_wait_for_a_participant_the_world_plays_no_tick_before_its_token(procs, hub, tap_on):
-    """--wait-for peer: both agents up is not enough; tick 0 comes only once the
-    participant's token does. The token is declared a second after both agents' tokens
-    were seen (a world that did not wait would tick in that second, and fail the test)."""
-    w = world(procs, hub, "--vehicles", "2", "--duration", "0.5", "--wait-for", "peer")
+@pytest.mark.parametrize("flags, token", [
+    (("--wait-for", "peer"), keys.participant_alive(RUN, "peer")),
+    (("--wait-for-proxy",), keys.proxy_alive(RUN)),  # what `autocast run` tells the world of every run with a channel
+], ids=["participant", "proxy"])
+def test_told_to_wait_for_a_token_the_world_plays_no_tick_before_it(procs, hub, tap_on, flags, token):
+    """--wait-for peer, --wait-for-proxy: both agents up is not enough; tick 0 comes only
+    once that token does. The token is declared a second after both agents' tokens were
+    seen (a world that did not wait would tick in that second, and fail the test)."""
+    w = world(procs, hub, "--vehicles", "2", "--duration", "0.5", *flags)
     for vid in (0, 1):
         agent(procs, hub, vid)
     session = tap_on().session
@@ -261,8 +265,8 @@ def test_told_to_wait_for_a_participant_the_world_plays_no_tick_before_its_token
                 session.declare_subscriber(keys.world_tick(RUN), lambda s: ticked.set())]
     try:
         assert agents_up.wait(60.0), "the agents never came up"
-        assert not ticked.wait(1.0), "the world ticked before the participant was up"
-        entities.append(session.liveliness().declare_token(keys.participant_alive(RUN, "peer")))
+        assert not ticked.wait(1.0), "the world ticked before the awaited token was up"
+        entities.append(session.liveliness().declare_token(token))
         result = outcome_of(w)
     finally:
         for entity in entities:

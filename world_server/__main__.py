@@ -51,6 +51,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--wait-for", nargs="+", default=[], metavar="NAME",
                     help="also wait, before tick 0, for each named participant's liveliness token "
                          "ac/<run>/alive/p/NAME (a process that must see the run from its first tick)")
+    ap.add_argument("--wait-for-proxy", action="store_true",
+                    help="also wait, before tick 0, for the channel proxy's liveliness token ac/<run>/alive/proxy "
+                         "(a run with a V2V channel or EMP's relay: tick 0's messages go through the proxy)")
     ap.add_argument("--authority", default=None, metavar="HEX",
                     help="the run's authority's Ed25519 public key: accept only commands and reports signed by "
                          "the vehicle's own certificate (docs/security.md)")
@@ -115,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
-                             ego_reports=args.ego_reports, verifier=verifier, wait_for=tuple(args.wait_for))
+                             ego_reports=args.ego_reports, verifier=verifier, wait_for=tuple(args.wait_for),
+                             wait_proxy=args.wait_for_proxy)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":

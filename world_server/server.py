@@ -8,9 +8,11 @@ dead at once; an agent whose command for a tick does not arrive within
 failsafe (full brake) and the run goes on without it.
 
 Start: tick 0 is not played before every connected agent's token is up (or
-``startup_timeout_s`` passed) and every participant named in ``wait_for`` holds its
-token ``keys.participant_alive``: a process that is not an agent but must see the run
-from tick 0 (a test's hostile peer) says so, whatever the machine's speed.
+``startup_timeout_s`` passed), the channel proxy's token ``keys.proxy_alive`` is up
+when the run has one (``wait_proxy``: the agents' tick-0 messages go to the proxy, and
+one it has not subscribed yet is lost), and every participant named in ``wait_for``
+holds its token ``keys.participant_alive``: a process that is not an agent but must see
+the run from tick 0 (a test's hostile peer) says so, whatever the machine's speed.
 
 Authenticity (``verifier``): with the run's authority key, a command (and the ego's
 report) is accepted only as a ``Signed`` envelope by that vehicle's certificate, of a
@@ -53,7 +55,8 @@ class ServerStats:
 class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
                  agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False,
-                 verifier: Verifier | None = None, wait_for: tuple[str, ...] = ()) -> None:
+                 verifier: Verifier | None = None, wait_for: tuple[str, ...] = (),
+                 wait_proxy: bool = False) -> None:
         self.sim = sim
         self.verifier = verifier
         self.faults = Injector("world")
@@ -76,8 +79,11 @@ class WorldServer:
         self._ego_reports = ego_reports
         self._expected = set(sim.connected_vids)
         self._live = set(self._expected)
-        self._wait_for = frozenset(wait_for)
-        self._participants: set[str] = set()  # the named participants whose token is up
+        # the tokens besides the agents' that tick 0 waits for: liveliness key -> name
+        self._awaited = {keys.participant_alive(run_id, name): name for name in wait_for}
+        if wait_proxy:
+            self._awaited[keys.proxy_alive(run_id)] = "proxy"
+        self._up: set[str] = set()  # the awaited keys whose token is up
         self._stopping = threading.Event()
         self._entities: list = []
 
@@ -106,9 +112,8 @@ class WorldServer:
             s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid), self._handler(AgentReport, self._on_report)),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
-        if self._wait_for:
-            self._entities.append(s.liveliness().declare_subscriber(keys.participant_alive(run, "*"),
-                                                                    self._on_participant, history=True))
+        self._entities += [s.liveliness().declare_subscriber(key, self._on_awaited, history=True)
+                           for key in self._awaited]
         self._tick_pub = reliable_publisher(s, keys.world_tick(run))
         self._truth_pub = reliable_publisher(s, keys.world_truth(run))
         self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
@@ -128,13 +133,13 @@ class WorldServer:
                     self._mark_dead(vid, "liveliness token dropped")
             self._cv.notify_all()
 
-    def _on_participant(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+    def _on_awaited(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
         with self._cv:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._participants.add(name)
+                self._up.add(key)
             else:
-                self._participants.discard(name)
+                self._up.discard(key)
             self._cv.notify_all()
 
     def _handler(self, expected: type, on_msg):
@@ -204,7 +209,7 @@ class WorldServer:
     def _wait_for_agents(self) -> None:
         deadline = time.monotonic() + self.startup_timeout_s
         with self._cv:
-            while not (self._expected <= self._tokens and self._wait_for <= self._participants) \
+            while not (self._expected <= self._tokens and self._up >= self._awaited.keys()) \
                     and not self._stopping.is_set():
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -212,13 +217,12 @@ class WorldServer:
                 self._cv.wait(min(left, 0.5))
             for vid in sorted(self._expected - self._tokens):
                 self._mark_dead(vid, f"never came up within {self.startup_timeout_s:.0f} s")
-            missing = sorted(self._wait_for - self._participants)
+            up = sorted(name for key, name in self._awaited.items() if key in self._up)
+            missing = sorted(name for key, name in self._awaited.items() if key not in self._up)
         if missing:
-            log.error("participant(s) %s never came up within %.0f s; starting without them", ", ".join(missing),
-                      self.startup_timeout_s)
+            log.error("%s never came up within %.0f s; starting without", ", ".join(missing), self.startup_timeout_s)
         log.info("%d of %d agents up%s; starting", len(self._live), len(self._expected),
-                 f", participants {', '.join(sorted(self._wait_for & self._participants)) or 'none'}" if self._wait_for
-                 else "")
+                 f", also {', '.join(up) or 'none'} of {len(self._awaited)} awaited" if self._awaited else "")
 
     def _one_tick(self, t0: float) -> None:
         sim = self.sim

@@ -8,7 +8,8 @@ type) and once expecting any type, the object payload codec
 message built from the type's hints, then usually mutated: truncated, bits flipped,
 bytes overwritten, inserted or cut, two payloads spliced, a node of the message
 replaced by a value of another type, a wrong type id or version, an array whose
-declared shape does not match its bytes or is enormous (10^12 elements and more),
+declared shape does not match its bytes or is enormous (10^12 elements and more), a
+well-formed array of another shape or dtype than its field declares (``Array``),
 containers and byte strings declaring 2^32 - 1 items the payload does not hold, or
 nesting 1,000 to 100,000 levels deep, or 20,000 empty containers side by side.
 
@@ -43,7 +44,7 @@ import msgpack
 import numpy as np
 
 from protocol import messages  # noqa: F401  (registers every message type)
-from protocol.codec import WIRE_DTYPES, MalformedMessage, decode, encode, message_types
+from protocol.codec import WIRE_DTYPES, MalformedMessage, array_spec, decode, encode, message_types
 from protocol.messages import Pose
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object
 
@@ -75,13 +76,11 @@ HUGE_DECLARED = (0xdd, 0xdf, 0xc6, 0xdb, 0xc9)  # array32, map32, bin32, str32, 
 def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
     """A random valid wire value (what ``encode`` would produce) of a field type."""
     origin = typing.get_origin(hint)
+    spec = array_spec(hint)
+    if spec is not None:  # as declared: its dtype, its fixed dimensions, 0 to 4 along a free one
+        return _array(spec.dtype, [rnd.randint(0, 4) if d is None else d for d in spec.shape], rnd)
     if hint is np.ndarray:
-        dtype = np.dtype(rnd.choice(sorted(WIRE_DTYPES)))
-        shape = [rnd.randint(0, 4) for _ in range(rnd.randint(1, 2))]
-        raw = bytes(rnd.getrandbits(8) for _ in range(math.prod(shape) * dtype.itemsize))
-        if dtype == np.bool_:
-            raw = bytes(b & 1 for b in raw)
-        return [dtype.str, shape, raw]
+        return _array(rnd.choice(sorted(WIRE_DTYPES)), [rnd.randint(0, 4) for _ in range(rnd.randint(1, 2))], rnd)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
         optional = len(args) < len(typing.get_args(hint))
@@ -94,8 +93,10 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
         k, v = typing.get_args(hint)
         return {wire_value(k, rnd, depth + 1): wire_value(v, rnd, depth + 1) for _ in range(rnd.randint(0, 3))}
     if dataclasses.is_dataclass(hint):
-        hints = typing.get_type_hints(hint)
-        return [wire_value(hints[f.name], rnd, depth + 1) for f in dataclasses.fields(hint)]
+        hints = typing.get_type_hints(hint, include_extras=True)
+        fields = {f.name: wire_value(hints[f.name], rnd, depth + 1) for f in dataclasses.fields(hint)}
+        _make_consistent(fields, rnd)
+        return list(fields.values())
     if hint is float:
         return rnd.choice([0.0, 1.5, -3.25, rnd.uniform(-1e3, 1e3)])
     if hint is int:
@@ -111,6 +112,15 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
     raise TypeError(f"no generator for {hint!r}")
 
 
+def _array(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
+    """A random array of ``dtype_str`` and ``shape`` on the wire."""
+    dtype = np.dtype(dtype_str)
+    raw = bytes(rnd.getrandbits(8) for _ in range(math.prod(shape) * dtype.itemsize))
+    if dtype == np.bool_:
+        raw = bytes(b & 1 for b in raw)
+    return [dtype.str, shape, raw]
+
+
 def _plain_value(rnd: random.Random, depth: int) -> Any:
     kind = rnd.randrange(7 if depth < 3 else 5)
     if kind == 5:
@@ -122,14 +132,21 @@ def _plain_value(rnd: random.Random, depth: int) -> Any:
 
 def message_body(cls: type, rnd: random.Random) -> list:
     """``[type_id, version, *fields]`` of a random valid message of ``cls``."""
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     fields = {f.name: wire_value(hints[f.name], rnd) for f in dataclasses.fields(cls)}
     _make_consistent(fields, rnd)
     return [cls.TYPE_ID, cls.VERSION, *fields.values()]
 
 
 def _make_consistent(fields: dict[str, Any], rnd: random.Random) -> None:
-    """Bundles check that their receiver masks fit (``__post_init__``): make them fit."""
+    """Bundles check that their receiver masks fit, an object map that its rows and
+    tables do (``__post_init__``): make them fit."""
+    if "object_id" in fields and "visibility" in fields:  # ObjectMap: n objects by m receivers
+        n, m = rnd.randint(0, 4), rnd.randint(0, 4)
+        shapes = {"object_id": [n], "size_bytes": [n], "centroid_xy": [n, 2], "receivers": [m],
+                  "visibility": [n, m], "relevance": [n, m]}
+        fields.update({name: _array(fields[name][0], shape, rnd) for name, shape in shapes.items()})
+        return
     if "receivers" in fields and ("heard" in fields or "decoded" in fields):
         receivers = sorted(rnd.sample(range(64), rnd.randint(0, 4)))
         fields["receivers"] = ["<i8", [len(receivers)], np.array(receivers, "<i8").tobytes()]
@@ -223,7 +240,7 @@ def _declared_huge(rnd: random.Random) -> bytes:
 
 def _bad_array(triple: list, rnd: random.Random) -> list:
     dtype, shape, raw = triple
-    kind = rnd.randrange(7)
+    kind = rnd.randrange(9)
     if kind == 0:  # enormous declared shape, few bytes
         huge = [[10**6, 10**6], [10**12], [2**63, 2], [2**64 - 1], [0, 2**64 - 1], [2**32] * 8]
         return [dtype, rnd.choice(huge), raw]
@@ -237,6 +254,13 @@ def _bad_array(triple: list, rnd: random.Random) -> list:
         return [dtype, shape, raw[:rnd.randint(0, max(len(raw) - 1, 0))] if raw else b"\x00"]
     if kind == 5:  # the bytes of another type
         return [dtype, shape, rnd.choice(["text", None, [1, 2], 3])]
+    if kind == 6 and type(shape) is list:  # a well-formed array of another shape than declared: flat, or one more axis
+        count = math.prod(shape) if all(type(d) is int for d in shape) else 0
+        return [dtype, rnd.choice([[count], [*shape, 1], [1, *shape]]), raw]
+    if kind == 7 and type(raw) is bytes:  # a well-formed array of another wire dtype than declared
+        other = np.dtype(rnd.choice(sorted(WIRE_DTYPES)))
+        n = len(raw) // other.itemsize
+        return [other.str, [n], raw[:n * other.itemsize]]
     return triple[:rnd.randint(0, 2)] + [raw] * rnd.randint(0, 2)  # wrong length of the triple
 
 
@@ -337,6 +361,9 @@ def decoder(name: str) -> Callable[[bytes], Any]:
 def conforms(value: Any, hint: Any) -> bool:
     """Is ``value`` of field type ``hint`` (as ``decode`` promises)?"""
     origin = typing.get_origin(hint)
+    spec = array_spec(hint)
+    if spec is not None:
+        return isinstance(value, np.ndarray) and spec.fits(value)
     if hint is np.ndarray:
         return isinstance(value, np.ndarray) and value.dtype.str in WIRE_DTYPES
     if origin in (typing.Union, types.UnionType):
@@ -352,7 +379,7 @@ def conforms(value: Any, hint: Any) -> bool:
         k, v = typing.get_args(hint)
         return isinstance(value, dict) and all(conforms(a, k) and conforms(b, v) for a, b in value.items())
     if dataclasses.is_dataclass(hint):
-        hints = typing.get_type_hints(hint)
+        hints = typing.get_type_hints(hint, include_extras=True)
         return type(value) is hint and all(conforms(getattr(value, f.name), hints[f.name])
                                            for f in dataclasses.fields(hint))
     if hint is float:

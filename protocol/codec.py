@@ -4,8 +4,11 @@ A message travels as one msgpack array: ``[type_id, version, field_1, ..., field
 in the dataclass's field order. numpy arrays travel as ``[dtype_str, shape, bytes]``
 with the bytes packed from a ``memoryview`` (no ``tobytes`` copy, no ``tolist``);
 nested dataclasses travel as plain arrays of their fields. Decoding checks the type,
-the version, the field count and every field's type, and raises ``MalformedMessage``
-on any mismatch, so a receiver can count and drop a bad payload without crashing.
+the version, the field count and every field's type, an array field's dtype and shape
+as the message declares them (``Array``), and raises ``MalformedMessage`` on any
+mismatch, so a receiver can count and drop a bad payload without crashing: a
+trajectory of two columns, say, would otherwise have reached a planner that indexes
+three, and its vehicle's fail-safe brake.
 
 Hostile input allocates no more than the bytes it brings: msgpack refuses a container
 or byte string whose declared length exceeds the payload, an array's declared shape
@@ -45,6 +48,38 @@ _REGISTRY: dict[int, type] = {}
 _HINTS: dict[type, list[tuple[str, Any]]] = {}
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class Array:
+    """What an array field holds, declared with the field:
+    ``trajectory: Annotated[np.ndarray, Array("<f4", (None, 3))]`` is float32 with three
+    columns and any number of rows (``None``: a free dimension). The decoder refuses any
+    other dtype or shape; the encoder raises ``TypeError`` at the sender."""
+
+    dtype: str  # one of WIRE_DTYPES
+    shape: tuple[int | None, ...]
+
+    def __post_init__(self) -> None:
+        if self.dtype not in WIRE_DTYPES:
+            raise ValueError(f"dtype {self.dtype!r} cannot go on the wire")
+
+    def fits(self, arr: np.ndarray) -> bool:
+        shape = arr.shape
+        return arr.dtype.str == self.dtype and len(shape) == len(self.shape) and \
+            all(d is None or d == n for d, n in zip(self.shape, shape))
+
+    def __str__(self) -> str:
+        return f"{np.dtype(self.dtype)} ({', '.join('n' if d is None else str(d) for d in self.shape)})"
+
+
+def array_spec(hint: Any) -> Array | None:
+    """The ``Array`` of a field type ``Annotated[np.ndarray, Array(...)]``, else None."""
+    if typing.get_origin(hint) is typing.Annotated:
+        base, *extras = typing.get_args(hint)
+        if base is np.ndarray:
+            return next((e for e in extras if isinstance(e, Array)), None)
+    return None
+
+
 def message(type_id: int, version: int = 1):
     """Class decorator: a frozen, slotted dataclass registered as wire type ``type_id``."""
 
@@ -78,10 +113,19 @@ def message_class(type_id: int) -> type | None:
 def _hints(cls) -> list[tuple[str, Any]]:
     got = _HINTS.get(cls)
     if got is None:
-        resolved = typing.get_type_hints(cls)
+        resolved = typing.get_type_hints(cls, include_extras=True)  # an array's Array is an extra
         got = [(f.name, resolved[f.name]) for f in dataclasses.fields(cls)]
         _HINTS[cls] = got
     return got
+
+
+def _array_to_wire_as(spec: Array, value: Any, field: str) -> list:
+    """An array field's value on the wire; raises ``TypeError`` naming the field if it
+    is not the ``Array`` the message declares (a sender's bug, caught where it is)."""
+    if not isinstance(value, np.ndarray) or not spec.fits(value):
+        got = f"{value.dtype} {list(value.shape)}" if isinstance(value, np.ndarray) else type(value).__name__
+        raise TypeError(f"{field}: expected {spec}, got {got}")
+    return _array_to_wire(value)
 
 
 def _array_to_wire(value: np.ndarray) -> list:
@@ -149,12 +193,20 @@ def _fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
 def _build_fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
     built: list[typing.Callable[[Any], list]] = []
     _ENCODERS[cls] = _placeholder(built)  # a record that (indirectly) contains itself
-    env: dict[str, Any] = {"_to_wire": _to_wire, "_array_to_wire": _array_to_wire, "ndarray": np.ndarray}
+    env: dict[str, Any] = {"_to_wire": _to_wire, "_array_to_wire": _array_to_wire, "ndarray": np.ndarray,
+                           "_array_to_wire_as": _array_to_wire_as}
     items = []
     for i, (name, hint) in enumerate(_hints(cls)):
         v = f"value.{name}"
         inner = typing.get_args(hint)[0] if typing.get_origin(hint) is list else None
-        if hint in (int, float, str, bool, bytes):
+        spec, inner_spec = array_spec(hint), array_spec(inner)
+        if spec is not None:
+            env[f"a{i}"] = spec
+            items.append(f"_array_to_wire_as(a{i}, {v}, '{cls.__name__}.{name}')")
+        elif inner_spec is not None:
+            env[f"a{i}"] = inner_spec
+            items.append(f"[_array_to_wire_as(a{i}, x, '{cls.__name__}.{name}[]') for x in {v}]")
+        elif hint in (int, float, str, bool, bytes):
             items.append(f"v if type(v := {v}) is {hint.__name__} else _to_wire(v)")
         elif hint is np.ndarray:
             items.append(f"_array_to_wire(v) if type(v := {v}) is ndarray else _to_wire(v)")
@@ -210,6 +262,9 @@ def _build_converter(hint: Any) -> Converter:
     origin = typing.get_origin(hint)
     if hint is np.ndarray:
         return _array_from_wire
+    spec = array_spec(hint)
+    if spec is not None:
+        return _array_converter(spec)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(hint)
         (inner,) = [a for a in args if a is not type(None)]
@@ -236,6 +291,22 @@ def _build_converter(hint: Any) -> Converter:
     if hint is Any:
         return _plain
     raise TypeError(f"unsupported field type {hint!r}")
+
+
+def _array_converter(spec: Array) -> Converter:
+    """An array field of a declared dtype and shape: any other is refused."""
+
+    dtype, ndim = np.dtype(spec.dtype), len(spec.shape)
+    fixed = [(axis, d) for axis, d in enumerate(spec.shape) if d is not None]
+
+    def convert(value: Any) -> np.ndarray:
+        arr = _array_from_wire(value)
+        shape = arr.shape
+        if arr.dtype != dtype or len(shape) != ndim or any(shape[axis] != d for axis, d in fixed):
+            _bad(f"expected {spec}, got {arr.dtype} {list(shape)}")
+        return arr
+
+    return convert
 
 
 def _brief(value: Any) -> str:

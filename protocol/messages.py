@@ -3,17 +3,19 @@
 Each top-level message carries ``tick`` (decision interval number) and ``t_sim_s``
 (simulation time at the start of that tick). Units are in the field names. Poses are
 in the world frame (x east, y north, yaw counter-clockwise from +x); scans are in the
-sensor frame (origin at the LiDAR, x forward, y left, z up).
+sensor frame (origin at the LiDAR, x forward, y left, z up). An array field declares
+its dtype and shape (``Array``: ``"<f4", (None, 3)`` is float32 of three columns, any
+number of rows); a message whose arrays are otherwise is refused whole.
 """
 
 from __future__ import annotations
 
 from dataclasses import field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from protocol.codec import message, record
+from protocol.codec import Array, message, record
 
 # ---------------------------------------------------------------------------- records
 
@@ -48,7 +50,7 @@ class Lane:
     """A directed lane: its centreline runs in the direction of travel."""
 
     lane_id: str
-    centerline: np.ndarray  # float64 (n, 2), metres, world frame
+    centerline: Annotated[np.ndarray, Array("<f8", (None, 2))]  # metres, world frame
     width_m: float
     speed_limit_mps: float
     light_id: int  # traffic light governing the lane's end, -1 if none
@@ -90,9 +92,9 @@ class MapMsg:
     t_sim_s: float
     name: str
     lanes: list[Lane]
-    drivable: list[np.ndarray]  # polygons, float64 (n, 2); their union is drivable
+    drivable: list[Annotated[np.ndarray, Array("<f8", (None, 2))]]  # polygons; their union is drivable
     lights: list[TrafficLight]
-    buildings: np.ndarray  # float64 (m, 6) static prisms [cx, cy, yaw, length, width, height]
+    buildings: Annotated[np.ndarray, Array("<f8", (None, 6))]  # static prisms [cx, cy, yaw, length, width, height]
 
 
 @message(2)
@@ -103,7 +105,7 @@ class Mission:
     t_sim_s: float
     vid: int
     role: str  # "ego" | "occluder" | "background"
-    route: np.ndarray  # float64 (n, 2) waypoints of the intended path, world frame
+    route: Annotated[np.ndarray, Array("<f8", (None, 2))]  # waypoints of the intended path, world frame
     cruise_speed_mps: float
     spec: VehicleSpec
     lidar: LidarConfig
@@ -136,7 +138,7 @@ class Scan:
     vid: int
     pose: Pose
     speed_mps: float
-    range_cm: np.ndarray  # uint16 (azimuth_steps, beams)
+    range_cm: Annotated[np.ndarray, Array("<u2", (None, None))]  # (azimuth_steps, beams)
 
     def points(self, lidar: LidarConfig) -> np.ndarray:
         """float32 (n, 3) sensor-frame points, azimuth-major, rays without a return left out."""
@@ -156,10 +158,10 @@ class WorldTruth:
 
     tick: int
     t_sim_s: float
-    vids: np.ndarray  # int64 (n,)
-    pose: np.ndarray  # float32 (n, 3): x_m, y_m, yaw_rad
-    speed_mps: np.ndarray  # float32 (n,)
-    size_m: np.ndarray  # float32 (n, 3): length, width, height
+    vids: Annotated[np.ndarray, Array("<i8", (None,))]
+    pose: Annotated[np.ndarray, Array("<f4", (None, 3))]  # x_m, y_m, yaw_rad
+    speed_mps: Annotated[np.ndarray, Array("<f4", (None,))]
+    size_m: Annotated[np.ndarray, Array("<f4", (None, 3))]  # length, width, height
 
 
 @message(5)
@@ -190,12 +192,19 @@ class ObjectMap:
     """A sender's object map (paper 4.1) as arrays: row t is object ``object_id[t]``,
     column c is receiver ``receivers[c]`` (the other vehicles of the domain)."""
 
-    object_id: np.ndarray  # int64 (n,)
-    size_bytes: np.ndarray  # int64 (n,), what the object's payload will occupy on air
-    centroid_xy: np.ndarray  # float32 (n, 2), world frame
-    receivers: np.ndarray  # int64 (m,)
-    visibility: np.ndarray  # float32 (n, m), v_(i,k),j: 1 = j sees it itself
-    relevance: np.ndarray  # float32 (n, m), r_(i,k),j in [0, 1]
+    object_id: Annotated[np.ndarray, Array("<i8", (None,))]  # (n,)
+    size_bytes: Annotated[np.ndarray, Array("<i8", (None,))]  # (n,), what the object's payload will occupy on air
+    centroid_xy: Annotated[np.ndarray, Array("<f4", (None, 2))]  # (n, 2), world frame
+    receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (m,)
+    visibility: Annotated[np.ndarray, Array("<f4", (None, None))]  # (n, m), v_(i,k),j: 1 = j sees it itself
+    relevance: Annotated[np.ndarray, Array("<f4", (None, None))]  # (n, m), r_(i,k),j in [0, 1]
+
+    def __post_init__(self) -> None:
+        n, m = len(self.object_id), len(self.receivers)
+        rows = {"size_bytes": len(self.size_bytes), "centroid_xy": len(self.centroid_xy)}
+        tables = {"visibility": self.visibility.shape, "relevance": self.relevance.shape}
+        if any(k != n for k in rows.values()) or any(shape != (n, m) for shape in tables.values()):
+            raise ValueError(f"{n} objects and {m} receivers, but rows {rows} and tables {tables}")
 
 
 def _no_counts() -> np.ndarray:
@@ -230,11 +239,11 @@ class ControlMsg:
     vid: int
     pose: Pose
     speed_mps: float
-    trajectory: np.ndarray  # float32 (p, 3): waypoints [x_m, y_m, t_sim_s], down-sampled
+    trajectory: Annotated[np.ndarray, Array("<f4", (None, 3))]  # waypoints [x_m, y_m, t_sim_s], down-sampled
     objects: ObjectMap
-    heard: np.ndarray  # int64: the senders whose control messages this vehicle heard last interval
-    unscheduled: np.ndarray = field(default_factory=_no_counts)  # int64 (n,) or (0,): m per object
-    digests: np.ndarray = field(default_factory=_no_digests)  # uint8 (n, DIGEST_BYTES) or (0, DIGEST_BYTES)
+    heard: Annotated[np.ndarray, Array("<i8", (None,))]  # the senders whose control messages this vehicle heard last interval
+    unscheduled: Annotated[np.ndarray, Array("<i8", (None,))] = field(default_factory=_no_counts)  # (n,) or (0,): m per object
+    digests: Annotated[np.ndarray, Array("|u1", (None, DIGEST_BYTES))] = field(default_factory=_no_digests)  # (n or 0, 16)
 
     def starvation(self) -> np.ndarray:
         """int64 (n,): m of every object of the map; zeros if none was reported or the
@@ -258,9 +267,9 @@ class CtrlBundle:
 
     tick: int
     t_sim_s: float
-    senders: np.ndarray  # int64 (S,), non-decreasing: the slot (vehicle) each message came in
-    receivers: np.ndarray  # int64 (C,), ascending: the interval's live vehicles
-    heard: np.ndarray  # bool (C, S): receiver c heard message s
+    senders: Annotated[np.ndarray, Array("<i8", (None,))]  # (S,), non-decreasing: the slot (vehicle) each message came in
+    receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (C,), ascending: the interval's live vehicles
+    heard: Annotated[np.ndarray, Array("|b1", (None, None))]  # (C, S): receiver c heard message s
     messages: list[bytes]  # (S,) the raw messages (a ControlMsg, or one in a Signed envelope)
 
     def __post_init__(self) -> None:
@@ -334,8 +343,8 @@ class DataBundle:
 
     tick: int
     t_sim_s: float
-    receivers: np.ndarray  # int64 (C,), ascending: the interval's live vehicles
-    decoded: np.ndarray  # bool (C, T): receiver c decoded reception t
+    receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (C,), ascending: the interval's live vehicles
+    decoded: Annotated[np.ndarray, Array("|b1", (None, None))]  # (C, T): receiver c decoded reception t
     receptions: list[Reception]  # (T,) the transmissions somebody decoded
 
     def __post_init__(self) -> None:
@@ -368,7 +377,7 @@ class EmpUpload:
     t_sim_s: float
     vid: int
     pose: Pose
-    points_world: np.ndarray  # float32 (n, 3), world frame
+    points_world: Annotated[np.ndarray, Array("<f4", (None, 3))]  # world frame
 
 
 @record
@@ -379,7 +388,7 @@ class EmpSegment:
     sender: int
     pose: Pose
     rx_time_s: float
-    points_world: np.ndarray  # float32 (n, 3)
+    points_world: Annotated[np.ndarray, Array("<f4", (None, 3))]
 
 
 @message(21)
@@ -391,8 +400,8 @@ class EmpBundle:
     t_sim_s: float
     receiver: int
     segments: list[EmpSegment]
-    site_vids: np.ndarray  # int64 (m,)
-    site_xy: np.ndarray  # float64 (m, 2)
+    site_vids: Annotated[np.ndarray, Array("<i8", (None,))]  # (m,)
+    site_xy: Annotated[np.ndarray, Array("<f8", (None, 2))]  # (m, 2)
 
 
 # ------------------------------------------------------------------ agent -> judge
@@ -406,7 +415,7 @@ class AgentReport:
     tick: int
     t_sim_s: float
     vid: int
-    fused_xy: np.ndarray  # float32 (n, 2): every above-ground point of the fused view, world frame
+    fused_xy: Annotated[np.ndarray, Array("<f4", (None, 2))]  # every above-ground point of the fused view, world frame
     received_points: int  # how many of them came from other vehicles
     braking: bool  # the planner is braking for a predicted conflict
 

@@ -378,3 +378,55 @@ def test_a_heard_control_whose_ballot_is_malformed_is_refused():
     body[2 + 7] = ["<i8", [2], b"\x00"]  # heard: one byte for two int64
     with pytest.raises(MalformedMessage, match=r"ControlMsg\.heard"):
         HeardControl.read(msgpack.packb(body))
+
+
+def _with_field(m: ControlMsg, at: int, value) -> bytes:
+    """``m`` encoded with field ``at`` (0: tick) replaced on the wire by ``value``."""
+    body = msgpack.unpackb(encode(m))
+    body[2 + at] = value
+    return msgpack.packb(body)
+
+
+def _wire(a: np.ndarray) -> list:
+    return [a.dtype.str, list(a.shape), a.tobytes()]
+
+
+@pytest.mark.parametrize("at, value, field", [
+    (5, _wire(np.zeros((4, 2), np.float32)), "trajectory"),  # two columns: a planner indexes the third
+    (5, _wire(np.zeros(12, np.float32)), "trajectory"),
+    (5, _wire(np.zeros((4, 3), np.float64)), "trajectory"),
+    (7, _wire(np.zeros((2, 1), np.int64)), "heard"),
+    (7, _wire(np.zeros(2, np.int32)), "heard"),
+], ids=["two-columns", "flat", "float64", "column", "int32"])
+def test_a_heard_control_of_another_shape_or_dtype_than_declared_is_dropped_and_counted(at, value, field):
+    """Well-formed arrays, but not what ``ControlMsg`` declares: before, such a message
+    was read and its trajectory went on to the neighbour table and the planner, which
+    index three columns; now it is refused and counted, and the rest of the bundle is read."""
+    from protocol.messages import CtrlBundle
+    from protocol.session import DropCounter
+    from vehicle_agent.link import heard_in
+
+    good, bad = msg(1, 5, [2, 3]), _with_field(msg(2, 5, [1, 3]), at, value)
+    with pytest.raises(MalformedMessage, match=rf"ControlMsg\.{field}: expected"):
+        HeardControl.read(bad)
+    bundle = CtrlBundle(5, 0.5, np.array([1, 2]), np.array([3]), np.ones((1, 2), bool), [encode(good), bad])
+    drops = DropCounter()
+    heard = heard_in(bundle, 3, drops)
+    assert [h.vid for h in heard] == [1] and drops.total == 1
+
+
+def test_an_object_map_whose_rows_do_not_fit_is_refused_when_opened_and_never_sent():
+    """An object map is n objects by m receivers in every array; one that is not
+    (here a relevance table of one column for two receivers) is malformed for the group
+    that opens it, and a sender cannot build one."""
+    m = msg(1, 5, [2], [(100, 900, {2: 1.0, 3: 0.5})])
+    body = msgpack.unpackb(encode(m))
+    body[2 + 6][5] = _wire(np.zeros((1, 1), np.float32))  # relevance (1, 1) for receivers [2, 3]
+    heard = HeardControl.read(msgpack.packb(body))  # the ballot and the motion are fine
+    with pytest.raises(MalformedMessage, match="1 objects and 2 receivers"):
+        heard.message()
+    om = m.objects
+    with pytest.raises(ValueError, match="1 objects and 2 receivers"):
+        ObjectMap(om.object_id, om.size_bytes, om.centroid_xy, om.receivers, om.visibility, om.relevance[:, :1])
+    with pytest.raises(TypeError, match=r"ControlMsg\.trajectory: expected float32 \(n, 3\), got float64"):
+        encode(ControlMsg(5, 0.5, 1, m.pose, 0.0, np.zeros((2, 3)), om, m.heard))

@@ -108,9 +108,10 @@ def test_a_bundle_gives_each_receiver_its_row_and_refuses_a_mask_that_does_not_f
     rx = [Reception(1, 7, 0.01, b"x"), Reception(5, 3, 0.02, b"y")]
     d = decode(encode(DataBundle(4, 0.4, np.array([2, 5]), np.array([[True, True], [False, False]]), rx)), DataBundle)
     assert d.received_by(2) == rx and d.received_by(5) == [] and d.received_by(3) is None
-    for bad in (heard[:, :2], heard.astype(np.uint8)):
-        with pytest.raises(MalformedMessage, match="heard must be bool"):
-            decode(_bundle_bytes(bad), CtrlBundle)
+    with pytest.raises(MalformedMessage, match="heard must be bool"):
+        decode(_bundle_bytes(heard[:, :2]), CtrlBundle)
+    with pytest.raises(MalformedMessage, match=r"CtrlBundle.heard: expected bool \(n, n\), got uint8"):
+        decode(_bundle_bytes(heard.astype(np.uint8)), CtrlBundle)
     with pytest.raises(MalformedMessage, match="receivers must be ascending"):
         decode(_bundle_bytes(heard, receivers=[5, 2]), CtrlBundle)
 

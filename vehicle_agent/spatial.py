@@ -67,6 +67,21 @@ def _inside(px, py, corners):
 
 
 @njit(cache=True)
+def _quad_distance(px, py, quad):
+    """Distance from (px, py) to the nearest point of ``quad``'s edges, a little less
+    (1e-9 relative and absolute): a lower bound of where any ray from (px, py) can
+    enter the quad, whatever ``_ray_rect``'s rounding."""
+    best = np.inf
+    for e in range(4):
+        ax, ay = quad[e, 0], quad[e, 1]
+        ex, ey = quad[(e + 1) % 4, 0] - ax, quad[(e + 1) % 4, 1] - ay
+        len2 = ex * ex + ey * ey
+        t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
+        best = min(best, np.hypot(ax + t * ex - px, ay + t * ey - py))
+    return best * (1.0 - 1e-9) - 1e-9
+
+
+@njit(cache=True)
 def _occluder_extent(px, py, quad):
     """The angular extent [lo, hi] (rad, world) of ``quad`` seen from (px, py)."""
     cx = 0.25 * (quad[0, 0] + quad[1, 0] + quad[2, 0] + quad[3, 0])
@@ -87,10 +102,11 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
 
     An occluder's angular extent and inside test are worked out for a viewer only once
     a target asks (``_UNKNOWN`` until then), and never for an occluder whose nearest
-    corner is beyond the target's farthest one: the per-ray test skips an occluder whose
-    nearest corner is no nearer than the ray's hit (``occ_near >= t_target``), so it
-    would skip that one on every ray. (The nearest corner, not the nearest point: a
-    long wall close to the viewer can be skipped by both; kept as it was.)"""
+    point is beyond the target's farthest corner: the per-ray test skips an occluder
+    whose nearest point is no nearer than the ray's hit (``occ_near >= t_target``), so
+    it would skip that one on every ray. The nearest point of its edges, not its nearest
+    corner: a long wall beside the viewer has its corners far away and its middle near,
+    and was skipped so, the objects behind it counted as seen through it."""
     J, K, O = viewers.shape[0], targets.shape[0], occluders.shape[0]
     share = np.zeros((J, K))
     occ_lo = np.empty(O)
@@ -103,10 +119,7 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
         own = target_as_occluder[self_target[j]] if self_target[j] >= 0 else -1
         for o in range(O):
             state[o] = _UNKNOWN
-            near = np.inf
-            for c in range(4):
-                near = min(near, np.hypot(occluders[o, c, 0] - px, occluders[o, c, 1] - py))
-            occ_near[o] = near
+            occ_near[o] = _quad_distance(px, py, occluders[o])
         for k in range(K):
             tk = targets[k]
             cx = 0.25 * (tk[0, 0] + tk[1, 0] + tk[2, 0] + tk[3, 0])

@@ -25,7 +25,7 @@ RUN = "rec"
 
 
 def scan(tick: int, vid: int = 0, n: int = 1000) -> Scan:
-    return Scan(tick, tick * 0.1, vid, Pose(1.0, 2.0, 0.5), 3.0, np.ones((n, 3), np.float32))
+    return Scan(tick, tick * 0.1, vid, Pose(1.0, 2.0, 0.5), 3.0, np.ones((n, 6), np.uint16))  # 12 bytes a row
 
 
 def read(data: bytes):

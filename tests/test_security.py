@@ -248,21 +248,32 @@ def test_the_world_takes_each_report_once_and_a_late_one_is_no_replay(authority)
     assert reasons(server.verifier) == {"replayed": 2}
 
 
-def test_a_signed_control_message_of_any_shape_vouches_for_nothing_and_raises_nothing(authority, creds):
-    """The codec checks each array's dtype and bytes, not its shape, and a compromised
-    vehicle signs what it likes: digests of another dtype or shape, or an object map
-    whose ids are a matrix, leave its payloads unvouched (``unsigned``), and the agent's
-    tick goes on."""
+def test_a_signed_control_message_of_another_shape_is_dropped_and_vouches_for_nothing(authority, creds):
+    """A compromised vehicle signs what it likes, bytes no encoder of ours writes:
+    digests of another dtype or shape, or an object map whose ids are a matrix. The
+    codec refuses each (an array is the dtype and shape its field declares): the
+    message is dropped and counted, not heard, its payloads are left unvouched, and the
+    agent's tick goes on."""
+    import msgpack
+
     p1 = payload(1, 10, 4)
     good = with_digests(control(1, 4, [10]), {10: p1})
-    odd = [replace(good, digests=good.digests.astype(np.float64)),
-           replace(good, digests=good.digests.reshape(-1)),
-           replace(good, objects=replace(good.objects, object_id=good.objects.object_id.reshape(1, 1)))]
-    for msg in odd:
-        guard = Guard(creds[0], DropCounter())
-        raw = Signer(creds[1]).seal(msg)
+    wire = lambda a: [a.dtype.str, list(a.shape), a.tobytes()]  # noqa: E731
+    digests, objects = 2 + 9, 2 + 6  # places in the wire list: type id and version, then the fields
+    odd = [(digests, None, wire(good.digests.astype(np.float64))), (digests, None, wire(good.digests.reshape(-1))),
+           (objects, 0, wire(good.objects.object_id.reshape(1, 1)))]  # the map's ids
+    signer = Signer(creds[1])
+    for at, inner, value in odd:
+        body = msgpack.unpackb(encode(good))
+        if inner is None:
+            body[at] = value
+        else:
+            body[at][inner] = value
+        raw_body = msgpack.packb(body)
+        raw = encode(Signed(4, 0.4, signer.credentials.certificate, raw_body, signer.signature(raw_body)))
+        drops = DropCounter()
+        guard = Guard(creds[0], drops)
         bundle = CtrlBundle(4, 0.4, np.array([1], np.int64), np.array([0], np.int64), np.array([[True]]), [raw])
         heard, check = guard.heard(decode(encode(bundle)), 4)
-        assert len(heard) == 1
+        assert heard == [] and drops.total == 1
         assert guard.payloads([Reception(1, 10, 0.01, p1)], check, bundle) == []
-        assert guard.rejections.summary()["by_reason"] == {"unsigned": 1}

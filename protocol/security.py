@@ -295,8 +295,8 @@ class PayloadCheck:
 
     def vouch(self, msg: ControlMsg) -> None:
         """A message whose digests are not one ``DIGEST_BYTES`` row of bytes per object of
-        its map vouches for nothing (the codec checks dtypes, not shapes: a vehicle may
-        sign any shape)."""
+        its map vouches for nothing (the codec checks each array's dtype and shape, but
+        not that the digests have a row per object: a vehicle may sign fewer)."""
         ids, digests = msg.objects.object_id, msg.digests
         if msg.vid in self._digests or ids.ndim != 1 or digests.dtype != np.uint8 or \
                 digests.shape != (len(ids), DIGEST_BYTES):

@@ -256,7 +256,7 @@ def _bad_array(triple: list, rnd: random.Random) -> list:
         return [dtype, shape, rnd.choice(["text", None, [1, 2], 3])]
     if kind == 6 and type(shape) is list:  # a well-formed array of another shape than declared: flat, or one more axis
         count = math.prod(shape) if all(type(d) is int for d in shape) else 0
-        return [dtype, rnd.choice([[count], [*shape, 1], [1, *shape]]), raw]
+        return [dtype, rnd.choice([[*shape, 1], [1, *shape]] + ([[count]] if len(shape) > 1 else [])), raw]
     if kind == 7 and type(raw) is bytes:  # a well-formed array of another wire dtype than declared
         other = np.dtype(rnd.choice(sorted(WIRE_DTYPES)))
         n = len(raw) // other.itemsize

@@ -119,7 +119,7 @@ def _hints(cls) -> list[tuple[str, Any]]:
     return got
 
 
-def _array_to_wire_as(spec: Array, value: Any, field: str) -> list:
+def _checked_array_to_wire(spec: Array, value: Any, field: str) -> list:
     """An array field's value on the wire; raises ``TypeError`` naming the field if it
     is not the ``Array`` the message declares (a sender's bug, caught where it is)."""
     if not isinstance(value, np.ndarray) or not spec.fits(value):
@@ -186,7 +186,8 @@ def _fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
     """A record's fields on the wire, ``[_to_wire(getattr(value, name)) for each field]``,
     written out as one generated function per class: a field of its declared type
     (exactly an int, a float, an ndarray, a record, a list of records) is converted
-    inline, anything else goes through ``_to_wire``. The same values, so the same bytes."""
+    inline, anything else goes through ``_to_wire``. The same values, so the same bytes;
+    but an array field takes only an array of its declared ``Array`` (``TypeError``)."""
     return _built_once(_ENCODERS, cls, _build_fields_to_wire)
 
 
@@ -194,7 +195,7 @@ def _build_fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
     built: list[typing.Callable[[Any], list]] = []
     _ENCODERS[cls] = _placeholder(built)  # a record that (indirectly) contains itself
     env: dict[str, Any] = {"_to_wire": _to_wire, "_array_to_wire": _array_to_wire, "ndarray": np.ndarray,
-                           "_array_to_wire_as": _array_to_wire_as}
+                           "_checked_array_to_wire": _checked_array_to_wire}
     items = []
     for i, (name, hint) in enumerate(_hints(cls)):
         v = f"value.{name}"
@@ -202,10 +203,10 @@ def _build_fields_to_wire(cls: type) -> typing.Callable[[Any], list]:
         spec, inner_spec = array_spec(hint), array_spec(inner)
         if spec is not None:
             env[f"a{i}"] = spec
-            items.append(f"_array_to_wire_as(a{i}, {v}, '{cls.__name__}.{name}')")
+            items.append(f"_checked_array_to_wire(a{i}, {v}, '{cls.__name__}.{name}')")
         elif inner_spec is not None:
             env[f"a{i}"] = inner_spec
-            items.append(f"[_array_to_wire_as(a{i}, x, '{cls.__name__}.{name}[]') for x in {v}]")
+            items.append(f"[_checked_array_to_wire(a{i}, x, '{cls.__name__}.{name}[]') for x in {v}]")
         elif hint in (int, float, str, bool, bytes):
             items.append(f"v if type(v := {v}) is {hint.__name__} else _to_wire(v)")
         elif hint is np.ndarray:
@@ -299,7 +300,7 @@ def _array_converter(spec: Array) -> Converter:
     dtype, ndim = np.dtype(spec.dtype), len(spec.shape)
     fixed = [(axis, d) for axis, d in enumerate(spec.shape) if d is not None]
 
-    def convert(value: Any) -> np.ndarray:
+    def convert(value: Any) -> np.ndarray:  # spec.fits, written out: a 40-vehicle bundle has ~100 arrays
         arr = _array_from_wire(value)
         shape = arr.shape
         if arr.dtype != dtype or len(shape) != ndim or any(shape[axis] != d for axis, d in fixed):
@@ -459,7 +460,11 @@ def _record_converter(cls: type) -> Converter:
         env.update({f"s{i}": d.__set__ for i, d in enumerate(slots)})
         lines += ["    out = new(cls)"] + [f"    s{i}(out, a{i})" for i in range(len(names))] + ["    return out"]
     else:
-        lines.append(f"    return cls({', '.join(f'a{i}' for i in range(len(names)))})")
+        # a record's own check (__post_init__) refuses as a field does: the path names where it sits
+        lines += ["    try:",
+                  f"        return cls({', '.join(f'a{i}' for i in range(len(names)))})",
+                  "    except ValueError as exc:",
+                  "        raise _FieldError(str(exc)) from None"]
     exec("\n".join(lines), env)  # noqa: S102 - the source is built from the class's own field list
     convert = env["convert"]
     built.append(convert)

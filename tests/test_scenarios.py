@@ -139,3 +139,24 @@ def test_a_run_without_a_duration_takes_its_scenarios_time_limit():
     assert [ScenarioParams(scenario=s).duration_s for s in ("overtaking", "left_turn", "red_light")] == [40, 30, 40]
     assert ScenarioParams(scenario=EXAMPLE).duration_s == 20.0
     assert ScenarioParams(scenario="overtaking", duration_s=7.5).duration_s == 7.5
+
+
+def test_a_scenario_built_of_ints_still_goes_on_the_wire():
+    """A user's builder may write ``np.array([[0, -100], [0, 100]])``: the map and the
+    missions go out float64, as the wire declares them (the encoder refuses an int64
+    array where float64 is declared)."""
+    from dataclasses import replace
+
+    from protocol.codec import decode, encode
+    from protocol.messages import MapMsg, Mission
+    from world_server.sim import Simulation
+
+    sim = Simulation(ScenarioParams(scenario="left_turn", vehicles=4))
+    roadmap, vid = sim.scenario.roadmap, sim.connected_vids[0]
+    roadmap.buildings = np.rint(roadmap.buildings).astype(np.int64)
+    roadmap.drivable = [np.rint(p).astype(np.int64) for p in roadmap.drivable]
+    sim.scenario.actors[vid] = replace(sim.scenario.actors[vid], route=np.rint(sim.scenario.actors[vid].route).astype(int))
+    got = decode(encode(roadmap.to_msg()), MapMsg)
+    assert got.buildings.dtype == np.float64 and got.buildings.tolist() == roadmap.buildings.tolist()
+    mission = decode(encode(sim.mission(vid)), Mission)
+    assert mission.route.tolist() == sim.scenario.actors[vid].route.tolist()

@@ -69,8 +69,8 @@ def _inside(px, py, corners):
 @njit(cache=True)
 def _quad_distance(px, py, quad):
     """Distance from (px, py) to the nearest point of ``quad``'s edges, a little less
-    (1e-9 relative and absolute): a lower bound of where any ray from (px, py) can
-    enter the quad, whatever ``_ray_rect``'s rounding."""
+    (1e-9 relative and absolute, far above rounding): a lower bound of where any ray
+    from (px, py) can enter the quad by ``_ray_rect``."""
     best = np.inf
     for e in range(4):
         ax, ay = quad[e, 0], quad[e, 1]

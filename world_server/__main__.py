@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
                              ego_reports=args.ego_reports, verifier=verifier, wait_for=tuple(args.wait_for),
-                             wait_proxy=args.wait_for_proxy)
+                             wait_for_proxy=args.wait_for_proxy)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":

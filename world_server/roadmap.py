@@ -55,8 +55,14 @@ class RoadMap:
         return join(*(self.lanes[i].centerline for i in lane_ids))
 
     def to_msg(self) -> MapMsg:
-        return MapMsg(0, 0.0, self.name, list(self.lanes.values()), list(self.drivable), list(self.lights),
-                      self.buildings.copy())
+        """The map on the wire, its arrays float64 as ``MapMsg`` declares them, whatever a
+        scenario built them of (a polygon of ints, say)."""
+        return MapMsg(0, 0.0, self.name, list(self.lanes.values()), [_f64(p, 2) for p in self.drivable],
+                      list(self.lights), _f64(self.buildings, 6).copy())
+
+
+def _f64(a, columns: int) -> np.ndarray:
+    return np.asarray(a, dtype=np.float64).reshape(-1, columns)
 
 
 def intersection() -> RoadMap:

@@ -9,7 +9,7 @@ failsafe (full brake) and the run goes on without it.
 
 Start: tick 0 is not played before every connected agent's token is up (or
 ``startup_timeout_s`` passed), the channel proxy's token ``keys.proxy_alive`` is up
-when the run has one (``wait_proxy``: the agents' tick-0 messages go to the proxy, and
+when the run has one (``wait_for_proxy``: the agents' tick-0 messages go to the proxy, and
 one it has not subscribed yet is lost), and every participant named in ``wait_for``
 holds its token ``keys.participant_alive``: a process that is not an agent but must see
 the run from tick 0 (a test's hostile peer) says so, whatever the machine's speed.
@@ -56,7 +56,7 @@ class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
                  agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False,
                  verifier: Verifier | None = None, wait_for: tuple[str, ...] = (),
-                 wait_proxy: bool = False) -> None:
+                 wait_for_proxy: bool = False) -> None:
         self.sim = sim
         self.verifier = verifier
         self.faults = Injector("world")
@@ -81,7 +81,7 @@ class WorldServer:
         self._live = set(self._expected)
         # the tokens besides the agents' that tick 0 waits for: liveliness key -> name
         self._awaited = {keys.participant_alive(run_id, name): name for name in wait_for}
-        if wait_proxy:
+        if wait_for_proxy:
             self._awaited[keys.proxy_alive(run_id)] = "proxy"
         self._up: set[str] = set()  # the awaited keys whose token is up
         self._stopping = threading.Event()
@@ -190,7 +190,7 @@ class WorldServer:
         """Run to the judged outcome; returns the result dict (also published)."""
         self._declare()
         try:
-            self._wait_for_agents()
+            self._wait_to_start()
             t0 = time.monotonic()
             while not self.sim.done and not self._stopping.is_set():
                 self._one_tick(t0)
@@ -206,7 +206,7 @@ class WorldServer:
             for entity in self._entities:
                 entity.undeclare()
 
-    def _wait_for_agents(self) -> None:
+    def _wait_to_start(self) -> None:
         deadline = time.monotonic() + self.startup_timeout_s
         with self._cv:
             while not (self._expected <= self._tokens and self._up >= self._awaited.keys()) \
@@ -220,7 +220,7 @@ class WorldServer:
             up = sorted(name for key, name in self._awaited.items() if key in self._up)
             missing = sorted(name for key, name in self._awaited.items() if key not in self._up)
         if missing:
-            log.error("%s never came up within %.0f s; starting without", ", ".join(missing), self.startup_timeout_s)
+            log.error("%s never came up within %.0f s; starting without them", ", ".join(missing), self.startup_timeout_s)
         if up:
             log.info("also up before tick 0: %s", ", ".join(up))
         log.info("%d of %d agents up; starting", len(self._live), len(self._expected))  # the benches key on this line

@@ -73,7 +73,8 @@ class Simulation:
         """What connected vehicle ``vid`` knows about itself: role, route, body, sensor."""
         a = self.scenario.actors[vid]
         lidar_cfg = dataclasses.replace(self.lidar_cfg, mount_height_m=a.mount_height_m)
-        return Mission(0, 0.0, vid, a.role, a.route, a.speed_mps, a.spec, lidar_cfg, self.decision_interval_s)
+        route = np.asarray(a.route, dtype=np.float64).reshape(-1, 2)  # as Mission declares it, whatever the scenario built
+        return Mission(0, 0.0, vid, a.role, route, a.speed_mps, a.spec, lidar_cfg, self.decision_interval_s)
 
     def lights(self) -> list[LightState]:
         return [LightState(i, s) for i, s in sorted(self.scenario.lights.items())]

@@ -406,9 +406,9 @@ class Recorder:
     def _done_after(self, outcome_at: float, now: float) -> bool:
         """After the outcome: the run's processes have gone and nothing arrived since, or
         the longest wait has passed."""
-        with self._lock:
-            settled = not self._live and now - self._last_event >= SETTLE_S
-        return settled or now - outcome_at >= self.cfg.drain_s
+        with self._lock:  # now >= t + d, not now - t >= d: the same sum as a caller's t + d, whatever t
+            settled = not self._live and now >= self._last_event + SETTLE_S
+        return settled or now >= outcome_at + self.cfg.drain_s
 
     def run(self, out: McapLog) -> None:
         """Record until stopped, the outcome has drained, or the hub is gone."""

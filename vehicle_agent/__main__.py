@@ -312,6 +312,9 @@ class Pipeline:
         self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report = report
+        # a vehicle that holds still plans the same whatever it receives (Planner.hold): it
+        # shares what it sees but fuses nothing, unless it reports its fused view (the ego)
+        self.fuses = not self.agent.planner.holds_still or report is not None
         self.timings: dict[str, list[float]] = {}
 
     def wire(self, cmd: Command) -> bytes:
@@ -341,7 +344,7 @@ class Pipeline:
         payloads: list[bytes] = []
         if self.scheme in SCHEDULER_OF:
             payloads = self._share(view, scan)
-        fused = agent.fuse(view, payloads)
+        fused = agent.fuse(view, payloads) if self.fuses else None
         plan = agent.plan(view, fused, scan)
         cmd = agent.control(plan, scan)
         if self.guard is not None:  # within the tick, so that signing counts in its timings

@@ -62,7 +62,8 @@ class Agent:
         with timed(self.timings_ms, "fusion"):
             return self.dataplane.fuse(view, payloads)[0]
 
-    def plan(self, view: View, fused: FusedGrid, scan: Scan) -> Plan:
+    def plan(self, view: View, fused: FusedGrid | None, scan: Scan) -> Plan:
+        """``fused`` may be None for a vehicle that ``holds_still``: its plan does not read it."""
         with timed(self.timings_ms, "planning"):
             if self.planner.holds_still:  # what it sees changes nothing: no obstacles to gather
                 self.last_plan = self.planner.hold(scan.pose, scan.t_sim_s)

@@ -2,13 +2,14 @@
 
 An agent receives three samples an interval (its scan, the ``CtrlBundle``, the
 ``DataBundle``) and publishes three (its control message, its ``DataTx``, its command),
-all far apart at 40 vehicles: a lock-step tick then takes ~300 ms of wall time. This
-bench has a subscriber process (a Zenoh peer listening on loopback, a callback that
-takes the payload's bytes, as ``protocol.session.typed_handler`` does) receive ``--count``
-samples from a publisher process that puts one every ``--gaps`` ms, and prints the
-subscriber's whole-process CPU (user + system, every thread: Zenoh's and the
-callback's) per sample, for each gap and payload size: the floor under an agent's CPU
-per tick that no change in the agent's own work moves.
+all far apart at 40 vehicles: a lock-step tick then takes ~300 ms of wall time. In
+this bench a subscriber process (a callback that takes the payload's bytes, as
+``protocol.session.typed_handler`` does) receives ``--count`` samples from a publisher
+process that puts one every ``--gaps`` ms. Both are Zenoh clients of a hub process in
+router mode, as in a run (``protocol.session.make_config``). It prints the subscriber's
+whole-process CPU per sample (user + system, every thread: Zenoh's and the
+callback's), for each gap and payload size. That is a floor under an agent's CPU per
+tick which no change in the agent's own work moves.
 
     python -m bench.zenoh_sample                       # gaps 1,5,20,100 ms; 4 KB and 230 KB
     python -m bench.zenoh_sample --gaps 20 --sizes 4000 --count 100 --rounds 3
@@ -28,20 +29,25 @@ import time
 
 import zenoh
 
+from protocol.session import ZenohArgs, make_config, open_session
+
 KEY = "bench/zenoh_sample"
 
 
-def _config(endpoint: str, listen: bool) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("listen/endpoints" if listen else "connect/endpoints", f'["{endpoint}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
+def _config(endpoint: str, hub: bool) -> zenoh.Config:
+    return make_config(ZenohArgs(listen=(endpoint,)) if hub else ZenohArgs(connect=(endpoint,)))
+
+
+def serve(endpoint: str, seconds: float) -> None:
+    """The hub process: a router on ``endpoint`` for ``seconds``."""
+    with zenoh.open(_config(endpoint, hub=True)):
+        time.sleep(seconds)
 
 
 def publish(endpoint: str, size: int, count: int, gap_s: float) -> None:
     """The publisher process: ``count`` puts of ``size`` bytes, ``gap_s`` apart, once the
     subscriber is matched."""
-    with zenoh.open(_config(endpoint, listen=False)) as session:
+    with zenoh.open(_config(endpoint, hub=False)) as session:
         pub = session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
         deadline = time.monotonic() + 30.0
         while not pub.matching_status.matching and time.monotonic() < deadline:
@@ -69,16 +75,21 @@ def receive(endpoint: str, size: int, count: int, gap_s: float) -> float:
             marks.append(_cpu_s())
             done.set()
 
-    with zenoh.open(_config(endpoint, listen=True)) as session:
-        sub = session.declare_subscriber(KEY, on_sample)
-        pub = subprocess.Popen([sys.executable, "-m", "bench.zenoh_sample", "--publish", endpoint, str(size),
-                                str(count), str(gap_s)])
-        try:
-            if not (first.wait(60.0) and done.wait(60.0 + count * gap_s * 2)):
-                raise RuntimeError(f"received {len(got)} of {count} samples")
-        finally:
-            pub.wait(timeout=60.0)
-            sub.undeclare()
+    me = [sys.executable, "-m", "bench.zenoh_sample"]
+    hub = subprocess.Popen([*me, "--serve", endpoint, str(120.0 + count * gap_s * 2)])
+    try:
+        with open_session(ZenohArgs(connect=(endpoint,))) as session:
+            sub = session.declare_subscriber(KEY, on_sample)
+            pub = subprocess.Popen([*me, "--publish", endpoint, str(size), str(count), str(gap_s)])
+            try:
+                if not (first.wait(60.0) and done.wait(60.0 + count * gap_s * 2)):
+                    raise RuntimeError(f"received {len(got)} of {count} samples")
+            finally:
+                pub.wait(timeout=60.0)
+                sub.undeclare()
+    finally:
+        hub.terminate()
+        hub.wait(timeout=30.0)
     return (marks[1] - marks[0]) / (count - 1)
 
 
@@ -92,13 +103,16 @@ def main(argv: list[str] | None = None) -> int:
         endpoint, size, count, gap_s = sys.argv[2:6]
         publish(endpoint, int(size), int(count), float(gap_s))
         return 0
+    if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--serve":
+        serve(sys.argv[2], float(sys.argv[3]))
+        return 0
     ap = argparse.ArgumentParser(prog="python -m bench.zenoh_sample", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaps", default="1,5,20,100", help="ms between two samples (comma-separated)")
     ap.add_argument("--sizes", default="4000,230000", help="payload bytes (comma-separated)")
     ap.add_argument("--count", type=int, default=200, help="samples per measurement")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--port", type=int, default=7461, help="the loopback TCP port the subscriber listens on")
+    ap.add_argument("--port", type=int, default=7461, help="the loopback TCP port of the hub")
     args = ap.parse_args(argv)
     endpoint = f"tcp/127.0.0.1:{args.port}"
     rows = []

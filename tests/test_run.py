@@ -138,9 +138,11 @@ def test_each_agent_reports_the_cpu_time_of_its_stages(scenario_runs):
     for vid in range(5):
         lines = (launch.run_dir / "logs" / f"agent{vid}.log").read_text().splitlines()
         t = json.loads([ln for ln in lines if ln.startswith("agent_timings ")][-1].removeprefix("agent_timings "))
-        stages = [t[f"{s}_cpu_mean"] for s in ("perception", "spatial_reasoning", "fusion", "planning", "control")
-                  if f"{s}_cpu_mean" in t]
-        assert len(stages) >= 4 and all(x >= 0.0 for x in stages), t  # single: no spatial reasoning
+        names = [s for s in ("perception", "spatial_reasoning", "fusion", "planning", "control") if f"{s}_cpu_mean" in t]
+        stages = [t[f"{s}_cpu_mean"] for s in names]
+        # single: no spatial reasoning; a vehicle that holds still fuses nothing (Pipeline.fuses), the ego does
+        assert {"perception", "planning", "control"} <= set(names) and all(x >= 0.0 for x in stages), t
+        assert vid != 0 or "fusion" in names, t
         assert t["perception_cpu_mean"] > 0.0 and 0.0 < sum(stages) <= t["cpu_mean"] + 5e-3, t  # means rounded to 1 us
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from bench import HEADLINE_KEYS, QUICK_KEYS
+from tests.conftest import free_port
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 
@@ -42,6 +43,16 @@ def test_each_bench_prints_its_headline_in_quick_mode(name, tmp_path):
         assert wc and float(wc.group(1)) > 0.0 and float(wc.group(2)) >= 1.0, res.stdout[-500:]
     if name == "pipeline":
         assert figures["rtf5"] > 0.0 and figures["agent_ms"] > 0.0
+
+
+def test_the_zenoh_sample_bench_measures_a_subscriber_through_a_hub():
+    """``python -m bench.zenoh_sample`` (not an ``autocast bench``: it compares nothing)
+    starts its hub and publisher, receives every sample and prints a figure."""
+    res = subprocess.run([sys.executable, "-m", "bench.zenoh_sample", "--gaps", "1", "--sizes", "4000", "--count", "5",
+                          "--rounds", "1", "--port", str(free_port())], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    figures = headline("zenoh_sample", res.stdout)
+    assert figures["samples"] == 5 and figures["rounds"] == 1 and figures["max_us"] > 0.0, figures
 
 
 def test_the_readme_documents_every_headline_key():

@@ -34,20 +34,16 @@ from protocol.session import ZenohArgs, make_config, open_session
 KEY = "bench/zenoh_sample"
 
 
-def _config(endpoint: str, hub: bool) -> zenoh.Config:
-    return make_config(ZenohArgs(listen=(endpoint,)) if hub else ZenohArgs(connect=(endpoint,)))
-
-
 def serve(endpoint: str, seconds: float) -> None:
     """The hub process: a router on ``endpoint`` for ``seconds``."""
-    with zenoh.open(_config(endpoint, hub=True)):
+    with zenoh.open(make_config(ZenohArgs(listen=(endpoint,)))):
         time.sleep(seconds)
 
 
 def publish(endpoint: str, size: int, count: int, gap_s: float) -> None:
     """The publisher process: ``count`` puts of ``size`` bytes, ``gap_s`` apart, once the
     subscriber is matched."""
-    with zenoh.open(_config(endpoint, hub=False)) as session:
+    with open_session(ZenohArgs(connect=(endpoint,))) as session:
         pub = session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
         deadline = time.monotonic() + 30.0
         while not pub.matching_status.matching and time.monotonic() < deadline:

@@ -23,6 +23,28 @@ settings.register_profile("fuzz", max_examples=10_000, deadline=None,
 settings.load_profile(os.environ.get("AUTOCAST_HYPOTHESIS", "ci"))
 
 
+# The numba kernels every run loads, compiled once: the launcher's own warm-up, for any scenario
+WARM_KERNELS = ("from deploy.run import warm_numba_caches; from world_server.scenarios import params_from_dict; "
+                "warm_numba_caches(params_from_dict({'scenario': 'left_turn', 'vehicles': 5}))")
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Fill the numba caches before any test starts, once for the session (in the xdist
+    controller, before its workers exist). On a fresh clone every kernel compiles
+    otherwise inside whichever test first starts a run, with the other workers compiling
+    the same kernels at the same time: on CI that took 86 s, and the run's 90 s safety net
+    went off. Warm, a launcher loads them in under a second."""
+    if hasattr(session.config, "workerinput"):
+        return
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", WARM_KERNELS], capture_output=True, text=True)
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if done.returncode != 0:  # not fatal: each test then compiles what it needs
+        print(f"numba caches not warmed (exit {done.returncode}):\n{done.stderr[-2000:]}", file=sys.stderr)
+    elif reporter is not None and time.monotonic() - t0 > 5:
+        reporter.write_line(f"numba caches compiled in {time.monotonic() - t0:.0f} s")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Longest first: the ``heavy`` tests lead the queue (a stable sort keeps the rest in
     file order), so under ``--dist load`` no worker picks up a half-minute test when the

@@ -519,23 +519,32 @@ def test_neighbor_table_places_older_messages_along_their_trajectories_like_inte
         traj = np.column_stack([rng.normal(0, 50, (len(times), 2)), times]).astype(np.float32)
         table.update([ControlMsg(0, t_msg, vid, Pose(*rng.normal(0, 50, 2), 0.0), 5.0, traj, empty, z)])
     for t_now in (0.0, 1.0, 2.0, 2.3, 3.5, 9.0):
-        got = {nb.vid: nb for nb in table.current(t_now, exclude=7)}
+        got = table.current(t_now, exclude=7)
+        assert got.waypoints.dtype == np.float64 and list(got.vid) == sorted(got.vid)
+        row = {int(vid): i for i, vid in enumerate(got.vid)}
         for vid, m in table.last.items():
             if vid == 7 or t_now - m.t_sim_s > table.max_age_s:
-                assert vid not in got
+                assert vid not in row
                 continue
             traj = np.asarray(m.trajectory, dtype=np.float64)
-            nb = got[vid]
+            i = row[vid]
             if m.t_sim_s >= t_now - 1e-9 or len(traj) < 2:
-                np.testing.assert_array_equal(nb.xy, [m.pose.x_m, m.pose.y_m])
-                np.testing.assert_array_equal(nb.trajectory, traj)
+                np.testing.assert_array_equal(got.xy[i], [m.pose.x_m, m.pose.y_m])
+                np.testing.assert_array_equal(got.trajectory(i), traj)
                 continue
             xy = [np.interp(t_now, traj[:, 2], traj[:, 0]), np.interp(t_now, traj[:, 2], traj[:, 1])]
             ahead = traj[traj[:, 2] > t_now]
             want = np.vstack([[*xy, t_now], ahead]) if len(ahead) else traj[-1:]
-            np.testing.assert_array_equal(nb.xy, xy)
-            np.testing.assert_array_equal(nb.trajectory, want)
-            assert not nb.fresh
+            np.testing.assert_array_equal(got.xy[i], xy)
+            np.testing.assert_array_equal(got.trajectory(i), want)
+            assert not got.fresh[i]
+        # a subset keeps each kept vehicle's row and trajectory
+        keep = np.arange(len(got)) % 3 != 1
+        sub = got.take(keep)
+        for i_sub, i in enumerate(np.flatnonzero(keep)):
+            assert sub.vid[i_sub] == got.vid[i] and sub.fresh[i_sub] == got.fresh[i]
+            np.testing.assert_array_equal(sub.xy[i_sub], got.xy[i])
+            np.testing.assert_array_equal(sub.trajectory(i_sub), got.trajectory(i))
 
 
 def test_fuse_matches_the_numpy_formulation_on_random_objects():

@@ -46,13 +46,34 @@ class View:
 
 
 @dataclass(frozen=True, slots=True)
-class NeighborState:
-    """Another vehicle as its latest control message says it is now."""
+class Neighbors:
+    """Other vehicles as their latest control messages say they are now, as arrays: row
+    i is vehicle ``vid[i]``, its trajectory ``waypoints[starts[i]:starts[i + 1]]``."""
 
-    vid: int
-    xy: np.ndarray
-    trajectory: np.ndarray  # (p, 3) [x, y, t], waypoints already passed evicted
-    fresh: bool  # its control message arrived this interval
+    vid: np.ndarray  # int64 (n,), ascending
+    xy: np.ndarray  # float64 (n, 2)
+    waypoints: np.ndarray  # float64 (P, 3) [x, y, t], every trajectory, waypoints already passed evicted
+    starts: np.ndarray  # int64 (n + 1,)
+    fresh: np.ndarray  # bool (n,): its control message arrived this interval
+
+    @staticmethod
+    def none() -> Neighbors:
+        return Neighbors(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(1, np.int64),
+                         np.zeros(0, bool))
+
+    def __len__(self) -> int:
+        return len(self.vid)
+
+    def trajectory(self, i: int) -> np.ndarray:
+        return self.waypoints[self.starts[i]:self.starts[i + 1]]
+
+    def take(self, keep: np.ndarray) -> Neighbors:
+        """The rows where ``keep`` (bool (n,)) holds, in order."""
+        lengths = np.diff(self.starts)[keep]
+        starts = np.zeros(len(lengths) + 1, dtype=np.int64)
+        np.cumsum(lengths, out=starts[1:])
+        rows = np.repeat(self.starts[:-1][keep] - starts[:-1], lengths) + np.arange(starts[-1])
+        return Neighbors(self.vid[keep], self.xy[keep], self.waypoints[rows], starts, self.fresh[keep])
 
 
 @dataclass
@@ -69,34 +90,50 @@ class NeighborTable:
             if prev is None or m.tick >= prev.tick:
                 self.last[m.vid] = m
 
-    def current(self, t_now_s: float, exclude: int) -> list[NeighborState]:
-        out = []
+    def current(self, t_now_s: float, exclude: int) -> Neighbors:
+        """Every vehicle heard from within ``max_age_s`` but ``exclude``. A fresh message
+        (or one of fewer than two waypoints) stands for its pose and trajectory as sent;
+        an older one for where its trajectory puts the vehicle now (np.interp's clamping
+        and formula) and the rest of it. One pass of Python per vehicle, the arrays
+        built once: at 40 vehicles a vehicle places 39 every interval."""
+        vids, xs, ys, trajs, fresh = [], [], [], [], []
         for vid in sorted(self.last):
             m = self.last[vid]
             if vid == exclude or t_now_s - m.t_sim_s > self.max_age_s:
                 continue
-            traj = np.asarray(m.trajectory, dtype=np.float64)
-            fresh = m.t_sim_s >= t_now_s - 1e-9
-            if fresh or len(traj) < 2:
-                out.append(NeighborState(vid, np.array([m.pose.x_m, m.pose.y_m]), traj, fresh))
+            traj, is_fresh = m.trajectory, m.t_sim_s >= t_now_s - 1e-9
+            vids.append(vid)
+            fresh.append(is_fresh)
+            if is_fresh or len(traj) < 2:
+                xs.append(m.pose.x_m)
+                ys.append(m.pose.y_m)
+                trajs.append(traj)
                 continue
-            # an older message: where its trajectory puts the vehicle now, and the rest of it
-            # (np.interp's clamping and formula, on the waypoints' increasing times)
+            traj = np.asarray(traj, dtype=np.float64)
             t = traj[:, 2]
             k = int(np.searchsorted(t, t_now_s, side="right"))  # the first waypoint after now
             if k == len(t):
-                out.append(NeighborState(vid, traj[-1, :2].copy(), traj[-1:], fresh))
+                xs.append(float(traj[-1, 0]))
+                ys.append(float(traj[-1, 1]))
+                trajs.append(traj[-1:])
                 continue
             if k == 0:
-                xy = traj[0, :2].copy()
+                xy = traj[0, :2]
             else:
                 slope = (traj[k, :2] - traj[k - 1, :2]) / (t[k] - t[k - 1])
                 xy = slope * (t_now_s - t[k - 1]) + traj[k - 1, :2]
             now = np.empty((len(t) - k + 1, 3))
             now[0, :2], now[0, 2] = xy, t_now_s
             now[1:] = traj[k:]
-            out.append(NeighborState(vid, xy, now, fresh))
-        return out
+            xs.append(float(xy[0]))
+            ys.append(float(xy[1]))
+            trajs.append(now)
+        if not vids:
+            return Neighbors.none()
+        starts = np.zeros(len(trajs) + 1, dtype=np.int64)
+        np.cumsum([len(tr) for tr in trajs], out=starts[1:])
+        return Neighbors(np.array(vids, dtype=np.int64), np.column_stack([xs, ys]).astype(np.float64),
+                         np.concatenate(trajs, dtype=np.float64), starts, np.array(fresh, dtype=bool))
 
 
 def in_domain(xy: np.ndarray) -> np.ndarray:
@@ -165,15 +202,14 @@ class DataPlane:
 
     # ----------------------------------------------------------------- reason
 
-    def object_map(self, view: View, neighbors: list[NeighborState]) -> ObjectMap:
+    def object_map(self, view: View, neighbors: Neighbors) -> ObjectMap:
         """v and r of every tracked object for every other vehicle of the domain."""
         tracks = view.tracks
-        near = in_domain(np.array([nb.xy for nb in neighbors], dtype=np.float64).reshape(-1, 2)).tolist()
-        receivers = [nb for nb, ok in zip(neighbors, near) if ok]
+        receivers = neighbors.take(in_domain(neighbors.xy))
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
         sizes = np.array([payload_size(len(t.detection.points_world)) for t in tracks], dtype=np.int64)
         centroids = np.array([t.xy for t in tracks], dtype=np.float64).reshape(-1, 2)
-        viewers = np.array([nb.xy for nb in receivers], dtype=np.float64).reshape(-1, 2)
+        viewers = receivers.xy
         with self._timed("visibility"):
             targets = corners_of([t.detection for t in tracks])
             own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
@@ -185,11 +221,11 @@ class DataPlane:
             dims = np.array([[max(t.detection.length_m, t.detection.width_m, 1.0), max(t.detection.width_m, 1.0)]
                              for t in tracks]).reshape(-1, 2)
             vel = np.array([t.velocity for t in tracks], dtype=np.float64).reshape(-1, 2)
-            rel = relevance([nb.trajectory for nb in receivers], np.tile(DEFAULT_DIMS, (len(receivers), 1)),
+            rel = relevance((receivers.waypoints, receivers.starts), np.tile(DEFAULT_DIMS, (len(receivers), 1)),
                             centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode,
                             obj_heading=np.array([t.heading_rad for t in tracks], dtype=np.float64))
         return ObjectMap(ids, sizes, centroids.astype(np.float32),
-                         np.array([nb.vid for nb in receivers], dtype=np.int64),
+                         receivers.vid,
                          np.ascontiguousarray(vis.T), np.ascontiguousarray(rel.T))
 
     def control_message(self, view: View, scan: Scan, trajectory: np.ndarray, heard: list[int],

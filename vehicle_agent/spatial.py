@@ -351,23 +351,29 @@ def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) ->
     return pos, head
 
 
-def relevance(trajectories: list[np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
+def relevance(trajectories: list[np.ndarray] | tuple[np.ndarray, np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
               obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
               step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None,
               window_s: float = WINDOW_S) -> np.ndarray:
     """(J, K) relevance of each object to each vehicle's trajectory.
 
-    ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s]; ``dims_j`` (J, 2) length,
+    ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s], or all of them packed as
+    (waypoints float64 (P, 3), starts int64 (J + 1,)), trajectory j
+    ``waypoints[starts[j]:starts[j + 1]]``; ``dims_j`` (J, 2) length,
     width; objects: centroid (K, 2), velocity (K, 2), dims (K, 2) length, width, and
     heading (K,) (default: the direction of motion).
     """
-    J, K = len(trajectories), len(obj_xy)
+    if isinstance(trajectories, tuple):
+        waypoints, starts = trajectories
+    else:
+        starts = np.zeros(len(trajectories) + 1, dtype=np.int64)
+        starts[1:] = np.cumsum([len(wp) for wp in trajectories])
+        waypoints = np.concatenate(trajectories).astype(np.float64) if trajectories else np.zeros((0, 3))
+    J, K = len(starts) - 1, len(obj_xy)
     if J == 0 or K == 0:
         return np.zeros((J, K), dtype=np.float32)
     times = t_now_s + np.arange(0.0, horizon_s + 1e-9, step_s)
-    starts = np.zeros(J + 1, dtype=np.int64)
-    starts[1:] = np.cumsum([len(wp) for wp in trajectories])
-    pos_j, head_j = _sample_all(np.concatenate(trajectories).astype(np.float64), starts, times)
+    pos_j, head_j = _sample_all(waypoints, starts, times)
     if obj_heading is None:
         speed = np.hypot(obj_vel[:, 0], obj_vel[:, 1])
         obj_heading = np.where(speed > 0.1, np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)

@@ -18,6 +18,7 @@ from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
 from vehicle_agent.agent import Agent, _boxes, _mark_cells, _mark_object_cells
 from vehicle_agent.agreement import AgreementConfig, HeardControl, decide
+from vehicle_agent.dataplane import Neighbors
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.fusion import warm_kernels as warm_fusion_kernels
 from vehicle_agent.payload import warm_kernels as warm_payload_kernels
@@ -41,7 +42,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     other = m.vid + 1
     other_msg = _as_received(ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
                                         np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
-                                        agent.dataplane.object_map(view, []), np.array([m.vid], np.int64)))
+                                        agent.dataplane.object_map(view, Neighbors.none()), np.array([m.vid], np.int64)))
     heard = HeardControl.read(encode(other_msg))  # as the link reads it: the codec's field index is built
     agent.dataplane.neighbors.update([heard])
     # every object once unscheduled: the scheduler state's join of starvation counters loads too

@@ -547,6 +547,39 @@ def test_neighbor_table_places_older_messages_along_their_trajectories_like_inte
             np.testing.assert_array_equal(sub.trajectory(i_sub), got.trajectory(i))
 
 
+def test_neighbor_table_places_hostile_trajectories_as_searchsorted_does():
+    """Times out of order, repeated, or NaN (a peer's control message is not ours to
+    trust): an older message is placed after the waypoint np.searchsorted(side="right")
+    finds, as the per-vehicle numpy formulation placed it."""
+    from protocol.messages import ControlMsg, ObjectMap
+    from vehicle_agent.dataplane import NeighborTable
+
+    def reference(traj, t_now):
+        t = traj[:, 2]
+        k = int(np.searchsorted(t, t_now, side="right"))
+        if k == len(t):
+            return traj[-1, :2], traj[-1:]
+        xy = traj[0, :2] if k == 0 else \
+            (traj[k, :2] - traj[k - 1, :2]) / (t[k] - t[k - 1]) * (t_now - t[k - 1]) + traj[k - 1, :2]
+        return xy, np.vstack([[*xy, t_now], traj[k:]])
+
+    z = np.zeros(0, dtype=np.int64)
+    empty = ObjectMap(z, z, np.zeros((0, 2), np.float32), z, np.zeros((0, 0), np.float32),
+                      np.zeros((0, 0), np.float32))
+    rng = np.random.default_rng(11)
+    table = NeighborTable(max_age_s=10.0)
+    for vid in range(1, 30):
+        times = rng.choice([0.5, 1.0, 1.0, 2.0, 3.0, np.nan, -1.0], int(rng.integers(2, 7)))
+        traj = np.column_stack([rng.normal(0, 20, (len(times), 2)), times]).astype(np.float32)
+        table.update([ControlMsg(0, 0.0, vid, Pose(0.0, 0.0, 0.0), 5.0, traj, empty, z)])
+    for t_now in (0.2, 1.0, 1.5, 2.5, 4.0):
+        got = table.current(t_now, exclude=-1)
+        for i, vid in enumerate(got.vid.tolist()):
+            want_xy, want_traj = reference(np.asarray(table.last[vid].trajectory, dtype=np.float64), t_now)
+            np.testing.assert_array_equal(got.xy[i], want_xy)
+            np.testing.assert_array_equal(got.trajectory(i), want_traj)
+
+
 def test_fuse_matches_the_numpy_formulation_on_random_objects():
     from vehicle_agent.fusion import SharedBatch, SharedObject, fuse
 

@@ -51,6 +51,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     payloads = agent.dataplane.payloads(view, [t.track_id for t in view.tracks])
     agent.drive(view, agent.fuse(view, list(payloads.values())), scan)
     del slots
+    agent.dataplane.neighbors.current(0.0, exclude=m.vid).take(np.zeros(1, dtype=bool))  # one out of the domain
     _warm_conflict(agent)
     _warm_registration()
     associate(np.zeros((1, 2)), np.ones(1), np.zeros((1, 2)))  # the tracker pairs tracks from an object's second frame

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from vehicle_agent.scheduler import (
+    Instance,
     InstanceTooLarge,
     ObjectOffer,
     Schedule,
@@ -106,6 +109,35 @@ def test_instance_rejects_bad_input():
         instance_from_arrays([1, 2], [3], [5], [10], np.zeros((1, 2)), np.ones((2, 2)), frame_bytes=100, n_frames=1)
     with pytest.raises(ValueError, match="reward"):
         instance_from_arrays([1, 2], [1], [5], [10], [[0.0, 1.5]], np.ones((2, 2)), frame_bytes=100, n_frames=1)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("unseen", [0.0, np.nan, 1.0], "unseen must be >= 0"),
+    ("unseen", [0.0, -0.5, 1.0], "unseen must be >= 0"),
+    ("vids", [1, 1, 3], "vids must be strictly ascending"),
+    ("owner", [0, 1, 3], "owner out of range"),
+    ("owner", [-1, 1, 2], "owner out of range"),
+    ("object_id", [5, 5, 2], None),  # fine: object ids ascend within an owner only
+    ("owner", [1, 0, 2], "objects must be sorted by (owner, object_id)"),
+    ("size_bytes", [10, 0, 10], "size_bytes must be positive"),
+    ("reward", [[0.5, 0.0, 0.0], [0.0, 0.0, 0.5], [0.0, 0.2, 0.0]], "reward to the owner itself must be 0"),
+    ("reward", [[0.0, np.nan, 0.0], [0.0, 0.0, 0.5], [0.5, 0.2, 0.0]], "reward must lie in [0, 1]"),
+    ("p_deliver", [[1.0, 1.2, 0.5], [0.5, 1.0, 0.5], [0.5, 0.5, 1.0]], "p_deliver must lie in [0, 1]"),
+])
+def test_instance_names_the_first_bad_value(field, value, message):
+    """Each value check on its own: an instance that breaks it is refused with its
+    message, and the unbroken instance is accepted."""
+    fields = dict(vids=np.array([1, 2, 3]), owner=np.array([0, 1, 2]), object_id=np.array([5, 6, 7]),
+                  size_bytes=np.array([10, 10, 10]), reward=np.array([[0.0, 0.5, 0.0], [0.0, 0.0, 0.5], [0.5, 0.2, 0.0]]),
+                  p_deliver=np.full((3, 3), 0.5), history=np.zeros((3, 3), dtype=bool), frame_bytes=100, n_frames=1,
+                  frame_duration_s=0.01, bandwidth_bps=6e6, unseen=np.zeros(3))
+    Instance(**fields)
+    broken = np.array(value, dtype=fields[field].dtype)
+    if message is None:
+        Instance(**{**fields, field: broken})
+        return
+    with pytest.raises(ValueError, match=re.escape(message)):
+        Instance(**{**fields, field: broken})
 
 
 def test_link_probability_falls_with_distance():

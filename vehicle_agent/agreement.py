@@ -312,10 +312,11 @@ class AgreedLinks:
         return self.outside if a is None or b is None else float(self.p[a, b])
 
     def matrix(self, vids: Sequence[int]) -> np.ndarray:
-        idx = np.array([self.at.get(int(v), -1) for v in vids], dtype=np.int64)
-        out = np.full((len(idx), len(idx)), self.outside)
-        known = np.flatnonzero(idx >= 0)
-        out[np.ix_(known, known)] = self.p[np.ix_(idx[known], idx[known])]
+        out = np.full((len(vids), len(vids)), self.outside)
+        known = [(n, self.at[v]) for n, v in enumerate(vids) if v in self.at]  # a group's few among the members
+        if known:
+            rows, at = (np.array(x, dtype=np.int64) for x in zip(*known))
+            out[rows[:, None], rows] = self.p[at[:, None], at]
         return out
 
 

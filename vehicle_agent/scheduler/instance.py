@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 
 ObjectKey = tuple[int, int]  # (sender vid i, object id k)
 
@@ -66,25 +67,16 @@ class Instance:
         if self.unseen is None:
             object.__setattr__(self, "unseen", np.zeros(K))
         _check(self.unseen.dtype == np.float64 and self.unseen.shape == (K,), "unseen must be float64 (K,)")
-        _check(bool(np.all(self.unseen >= 0.0)), "unseen must be >= 0")
         _check(self.vids.dtype == np.int64 and self.vids.shape == (C,), "vids must be int64 (C,)")
-        _check(bool(np.all(np.diff(self.vids) > 0)), "vids must be strictly ascending")
         for name in ("owner", "object_id", "size_bytes"):
             a = getattr(self, name)
             _check(a.dtype == np.int64 and a.shape == (K,), f"{name} must be int64 (K,)")
         _check(self.reward.dtype == np.float64 and self.reward.shape == (K, C), "reward must be float64 (K, C)")
         _check(self.p_deliver.dtype == np.float64 and self.p_deliver.shape == (C, C), "p_deliver must be float64 (C, C)")
         _check(self.history.dtype == np.bool_ and self.history.shape == (K, C), "history must be bool (K, C)")
-        if K:
-            _check(bool(np.all((self.owner >= 0) & (self.owner < C))), "owner out of range")
-            d_owner, d_object = np.diff(self.owner), np.diff(self.object_id)
-            _check(_ascending_pairs(d_owner, d_object), "objects must be sorted by (owner, object_id)")
-            same = (d_owner == 0) & (d_object == 0)
-            _check(not bool(np.any(same)), "duplicate (owner, object_id)")
-            _check(bool(np.all(self.size_bytes > 0)), "size_bytes must be positive")
-            _check(bool(np.all(self.reward[np.arange(K), self.owner] == 0.0)), "reward to the owner itself must be 0")
-        _check(bool(np.all((self.reward >= 0.0) & (self.reward <= 1.0))), "reward must lie in [0, 1]")
-        _check(bool(np.all((self.p_deliver >= 0.0) & (self.p_deliver <= 1.0))), "p_deliver must lie in [0, 1]")
+        bad = _first_bad_value(self.vids, self.owner, self.object_id, self.size_bytes, self.reward, self.p_deliver,
+                               self.unseen)
+        _check(bad == 0, _BAD_VALUE[bad])
         _check(self.frame_bytes >= 0 and self.n_frames >= 0, "frame_bytes and n_frames must be >= 0")
         for name in ("vids", "owner", "object_id", "size_bytes", "reward", "p_deliver", "history", "unseen"):
             getattr(self, name).setflags(write=False)
@@ -114,6 +106,50 @@ def _ascending_pairs(d_major: np.ndarray, d_minor: np.ndarray) -> bool:
     """Pairs in lexicographic order (ties allowed), from their consecutive differences:
     what a stable ``np.lexsort`` leaves in place."""
     return bool(np.all((d_major > 0) | ((d_major == 0) & (d_minor >= 0))))
+
+
+_BAD_VALUE = ("", "unseen must be >= 0", "vids must be strictly ascending", "owner out of range",
+              "objects must be sorted by (owner, object_id)", "duplicate (owner, object_id)",
+              "size_bytes must be positive", "reward to the owner itself must be 0", "reward must lie in [0, 1]",
+              "p_deliver must lie in [0, 1]")
+
+
+@njit(cache=True)
+def _first_bad_value(vids, owner, object_id, size_bytes, reward, p_deliver, unseen) -> int:
+    """The first of the instance's value checks that fails (its index in ``_BAD_VALUE``),
+    0 if none does: one pass each, where a dozen numpy reductions took ~45 us an
+    interval. NaN fails every range check, as ``np.all(x >= 0)`` fails it."""
+    for k in range(len(unseen)):
+        if not unseen[k] >= 0.0:
+            return 1
+    for c in range(1, len(vids)):
+        if not vids[c] > vids[c - 1]:
+            return 2
+    C, K = len(vids), len(object_id)
+    for k in range(K):
+        if owner[k] < 0 or owner[k] >= C:
+            return 3
+    for k in range(1, K):
+        if owner[k] < owner[k - 1] or (owner[k] == owner[k - 1] and object_id[k] < object_id[k - 1]):
+            return 4
+    for k in range(1, K):
+        if owner[k] == owner[k - 1] and object_id[k] == object_id[k - 1]:
+            return 5
+    for k in range(K):
+        if size_bytes[k] <= 0:
+            return 6
+    for k in range(K):
+        if reward[k, owner[k]] != 0.0:
+            return 7
+    for k in range(K):
+        for c in range(C):
+            if not (reward[k, c] >= 0.0 and reward[k, c] <= 1.0):
+                return 8
+    for i in range(C):
+        for j in range(C):
+            if not (p_deliver[i, j] >= 0.0 and p_deliver[i, j] <= 1.0):
+                return 9
+    return 0
 
 
 def _check(ok: bool, what: str) -> None:
@@ -296,12 +332,12 @@ def make_instance(
         v, r = np.asarray(b.visibility, dtype=np.float64), np.asarray(b.relevance, dtype=np.float64)
         cols = np.searchsorted(vid_arr, b.receivers)
         y[:, cols] = (1.0 - v) * r  # y = (1 - v) * r
-        hidden[:, cols] = np.clip(1.0 - v, 0.0, 1.0)
+        hidden[:, cols] = np.minimum(np.maximum(1.0 - v, 0.0), 1.0)  # np.clip's values, a third of its time
         hidden[:, np.searchsorted(vid_arr, i)] = 0.0  # the sender sees its own object
         blocks.append(y)
         unseen.append(hidden.sum(axis=1))  # summed in vid order: bit-equal on every vehicle
     reward = np.concatenate(blocks) if blocks else np.zeros((0, C))
-    owner_vid = np.concatenate([np.full(len(b.object_id), i, dtype=np.int64) for i, b in senders] or [np.zeros(0, np.int64)])
+    owner_vid = np.repeat(np.array([i for i, _ in senders], dtype=np.int64), [len(b.object_id) for _, b in senders])
     object_id = np.concatenate([np.asarray(b.object_id, dtype=np.int64) for _, b in senders] or [np.zeros(0, np.int64)])
     size_bytes = np.concatenate([np.asarray(b.size_bytes, dtype=np.int64) for _, b in senders] or [np.zeros(0, np.int64)])
     hist = np.zeros(reward.shape, dtype=bool)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from protocol.messages import LidarConfig, Pose, Scan
-from world_server.lidar import scan, scan_many
+from world_server.lidar import prepare_boxes, range_image_prepared, scan, scan_many, scan_prepared
 
 CFG = LidarConfig()  # 64 beams, +2.0 .. -24.8 deg, 1800 azimuths, 100 m
 H = 1.9  # car mount height
@@ -271,3 +271,20 @@ def test_range_image_carries_the_points() -> None:
     horiz_err = np.abs(np.hypot(back[:, 0], back[:, 1]) - np.hypot(sweep.points[:, 0], sweep.points[:, 1]))
     assert horiz_err.max() <= 0.005 + 1e-4
     np.testing.assert_allclose(back, sweep.points, atol=0.006)
+
+
+def test_range_image_alone_equals_the_sweeps() -> None:
+    """``range_image_prepared`` (what the world casts for most vehicles) gives the very
+    range image ``scan_prepared`` does, and counts each box's rays as its labels do."""
+    rng = np.random.default_rng(5)
+    boxes = random_scene(rng, 30)
+    prepared = prepare_boxes(boxes)
+    for i in range(6):
+        pose = np.array([boxes[i, 0], boxes[i, 1], rng.uniform(-math.pi, math.pi)])
+        h = 3.8 if boxes[i, 5] > 2.0 else 1.9
+        sweep = scan_prepared(prepared, pose, h, CFG, i)
+        image = range_image_prepared(prepared, pose, h, CFG, i)
+        np.testing.assert_array_equal(image.range_cm, sweep.range_cm)
+        hit = sweep.labels[sweep.labels >= 0]
+        np.testing.assert_array_equal(image.box_hits, np.bincount(hit, minlength=len(boxes)))
+        assert image.box_hits[i] == 0 and image.box_hits.sum() > 0

@@ -12,7 +12,9 @@ the index of the box hit, or -1 for the ground.
 Why it is fast (DESIGN.md "Facts measured"): the ground return of every ray depends
 only on the config and the sensor height, so it is precomputed once; a scan then only
 casts each box against the azimuth columns its corners span (azimuth culling) and
-copies the precomputed ground for every column no box touched.
+copies the precomputed ground for every column no box touched. The world sends only
+the range image (``Scan.range_cm``); ``range_image_prepared`` builds just that, for the
+vehicles whose points it does not need.
 """
 
 from __future__ import annotations
@@ -32,41 +34,6 @@ _MAX_CM = 65535  # uint16 range image: 655 m, far beyond any LidarConfig.range_m
 
 # columns of a prepared box row (see prepare_boxes)
 _CX, _CY, _COS, _SIN, _HALF_L, _HALF_W, _HEIGHT = range(7)
-
-
-@functools.lru_cache(maxsize=32)
-def _tables(cfg: LidarConfig, sensor_z_m: float) -> tuple[np.ndarray, ...]:
-    """Per (config, sensor height) constants: ray directions, range limits, the ground return.
-
-    Returns cos/sin of each azimuth, tan of each elevation, the largest horizontal
-    distance within range per beam, and the ground points (steps, beams, 3) float32
-    with the first beam that returns ground (valid ground beams are a tail because
-    elevations descend).
-    """
-    if not cfg.fov_up_deg > cfg.fov_down_deg:
-        raise ValueError("LidarConfig needs fov_up_deg > fov_down_deg")
-    if sensor_z_m <= 0.0:
-        raise ValueError(f"sensor height must be above the ground, got {sensor_z_m}")
-    elev = cfg.elevations_rad()
-    azim = cfg.azimuths_rad()
-    cos_phi = np.cos(azim)
-    sin_phi = np.sin(azim)
-    tan_theta = np.tan(elev)
-    d_limit = cfg.range_m * np.cos(elev)  # horizontal distance at 3-D range_m
-    ground_d = np.full(cfg.beams, np.inf)
-    down = elev < 0.0
-    ground_d[down] = sensor_z_m / np.tan(-elev[down])
-    ground_ok = ground_d <= d_limit  # ground hit within range (3-D: h / sin(-theta))
-    first_ground = int(np.argmax(ground_ok)) if ground_ok.any() else cfg.beams
-    ground_d[~ground_ok] = np.inf
-    ground_pts = np.zeros((cfg.azimuth_steps, cfg.beams, 3), dtype=np.float32)
-    d = np.where(ground_ok, ground_d, 0.0)
-    ground_pts[:, :, 0] = cos_phi[:, None] * d[None, :]
-    ground_pts[:, :, 1] = sin_phi[:, None] * d[None, :]
-    ground_pts[:, :, 2] = -sensor_z_m
-    for arr in (cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts):
-        arr.setflags(write=False)
-    return cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, first_ground
 
 
 @functools.lru_cache(maxsize=4)
@@ -114,8 +81,51 @@ def _cm(d: float) -> int:
     return max(1, min(_MAX_CM, int(d * 100.0 + 0.5)))
 
 
+class _Tables(NamedTuple):
+    """Per (config, sensor height) constants: ray directions, range limits, the ground return."""
+
+    cos_phi: np.ndarray  # (steps,) cos of each azimuth
+    sin_phi: np.ndarray  # (steps,)
+    tan_theta: np.ndarray  # (beams,) tan of each elevation
+    d_limit: np.ndarray  # (beams,) the largest horizontal distance within range
+    ground_d: np.ndarray  # (beams,) horizontal distance to the ground, inf where out of range
+    ground_pts: np.ndarray  # float32 (steps, beams, 3): the ground return of every ray
+    ground_cm: np.ndarray  # uint16 (beams,): a column of the range image that no box touches
+    first_ground: int  # the first beam that returns ground (a tail: elevations descend)
+
+
+@functools.lru_cache(maxsize=32)
+def _tables(cfg: LidarConfig, sensor_z_m: float) -> _Tables:
+    if not cfg.fov_up_deg > cfg.fov_down_deg:
+        raise ValueError("LidarConfig needs fov_up_deg > fov_down_deg")
+    if sensor_z_m <= 0.0:
+        raise ValueError(f"sensor height must be above the ground, got {sensor_z_m}")
+    elev = cfg.elevations_rad()
+    azim = cfg.azimuths_rad()
+    cos_phi = np.cos(azim)
+    sin_phi = np.sin(azim)
+    tan_theta = np.tan(elev)
+    d_limit = cfg.range_m * np.cos(elev)  # horizontal distance at 3-D range_m
+    ground_d = np.full(cfg.beams, np.inf)
+    down = elev < 0.0
+    ground_d[down] = sensor_z_m / np.tan(-elev[down])
+    ground_ok = ground_d <= d_limit  # ground hit within range (3-D: h / sin(-theta))
+    first_ground = int(np.argmax(ground_ok)) if ground_ok.any() else cfg.beams
+    ground_d[~ground_ok] = np.inf
+    ground_pts = np.zeros((cfg.azimuth_steps, cfg.beams, 3), dtype=np.float32)
+    d = np.where(ground_ok, ground_d, 0.0)
+    ground_pts[:, :, 0] = cos_phi[:, None] * d[None, :]
+    ground_pts[:, :, 1] = sin_phi[:, None] * d[None, :]
+    ground_pts[:, :, 2] = -sensor_z_m
+    ground_cm = np.zeros(cfg.beams, dtype=np.uint16)
+    ground_cm[first_ground:] = [_cm(d) for d in ground_d[first_ground:]]
+    for arr in (cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, ground_cm):
+        arr.setflags(write=False)
+    return _Tables(cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, ground_cm, first_ground)
+
+
 @njit(cache=True)
-def _scan_kernel(
+def _cast(
     prepared: np.ndarray,
     sx: float,
     sy: float,
@@ -127,17 +137,14 @@ def _scan_kernel(
     tan_theta: np.ndarray,
     d_limit: np.ndarray,
     ground_d: np.ndarray,
-    ground_pts: np.ndarray,
-    first_ground: int,
     best_d: np.ndarray,
     best_lbl: np.ndarray,
     touched: np.ndarray,
-    range_cm: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Cast one sweep: nearest hit per ray over the boxes' azimuth spans, then compact.
+) -> None:
+    """Cast one sweep: the nearest hit per ray over the boxes' azimuth spans.
 
-    Also fills ``range_cm`` (steps, beams): each ray's horizontal distance in cm, 0 for
-    no return; the points are exactly what ``range_cm`` encodes, before rounding.
+    Fills ``touched`` (the columns some box's span covers) and, in those columns only,
+    ``best_d`` (horizontal distance) and ``best_lbl`` (box, ``GROUND`` or ``_NO_RETURN``).
     """
     n_az = cos_phi.shape[0]
     n_beams = tan_theta.shape[0]
@@ -232,6 +239,28 @@ def _scan_kernel(
                     best_d[col, b] = d
                     best_lbl[col, b] = k
 
+
+
+@njit(cache=True)
+def _compact(
+    cos_phi: np.ndarray,
+    sin_phi: np.ndarray,
+    tan_theta: np.ndarray,
+    ground_d: np.ndarray,
+    ground_pts: np.ndarray,
+    first_ground: int,
+    best_d: np.ndarray,
+    best_lbl: np.ndarray,
+    touched: np.ndarray,
+    range_cm: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cast sweep's points and labels, azimuth-major, and its range image.
+
+    Fills ``range_cm`` (steps, beams): each ray's horizontal distance in cm, 0 for no
+    return; the points are exactly what ``range_cm`` encodes, before rounding.
+    """
+    n_az = cos_phi.shape[0]
+    n_beams = tan_theta.shape[0]
     n_ground = n_beams - first_ground
     n = 0
     for col in range(n_az):
@@ -277,6 +306,33 @@ def _scan_kernel(
     return points, labels
 
 
+@njit(cache=True)
+def _range_image(
+    ground_cm: np.ndarray,
+    best_d: np.ndarray,
+    best_lbl: np.ndarray,
+    touched: np.ndarray,
+    range_cm: np.ndarray,
+    box_hits: np.ndarray,
+) -> None:
+    """The cast sweep's range image only (what ``_compact`` fills, without the points),
+    and ``box_hits[k]``: how many rays returned box ``k``."""
+    n_az, n_beams = range_cm.shape
+    for col in range(n_az):
+        if not touched[col]:
+            range_cm[col, :] = ground_cm
+            continue
+        for b in range(n_beams):
+            lbl = best_lbl[col, b]
+            if lbl == _NO_RETURN:
+                range_cm[col, b] = 0
+            elif lbl == GROUND:
+                range_cm[col, b] = ground_cm[b]
+            else:
+                range_cm[col, b] = _cm(best_d[col, b])
+                box_hits[lbl] += 1
+
+
 class Sweep(NamedTuple):
     """One sweep: what the world keeps (points and ground-truth labels) and what it sends."""
 
@@ -285,34 +341,45 @@ class Sweep(NamedTuple):
     range_cm: np.ndarray  # uint16 (steps, beams): horizontal distance per ray in cm, 0 = none
 
 
+class RangeImage(NamedTuple):
+    """One sweep as the world sends it, and how many of its rays returned each box."""
+
+    range_cm: np.ndarray  # uint16 (steps, beams), as in Sweep
+    box_hits: np.ndarray  # int64 (boxes,): rays that returned box k (box k's labels in the Sweep)
+
+
 def scan_prepared(
     prepared: np.ndarray, pose: np.ndarray, sensor_z_m: float, cfg: LidarConfig, skip_box: int
 ) -> Sweep:
-    cos_phi, sin_phi, tan_theta, d_limit, ground_d, ground_pts, first_ground = _tables(
-        cfg, float(sensor_z_m)
-    )
-    best_d, best_lbl, touched = _scratch(cfg.azimuth_steps, cfg.beams)
+    t = _tables(cfg, float(sensor_z_m))
+    best_d, best_lbl, touched = _cast_prepared(prepared, pose, sensor_z_m, cfg, skip_box, t)
     range_cm = np.empty((cfg.azimuth_steps, cfg.beams), dtype=np.uint16)
-    points, labels = _scan_kernel(
-        prepared,
-        float(pose[0]),
-        float(pose[1]),
-        float(pose[2]),
-        float(sensor_z_m),
-        int(skip_box),
-        cos_phi,
-        sin_phi,
-        tan_theta,
-        d_limit,
-        ground_d,
-        ground_pts,
-        first_ground,
-        best_d,
-        best_lbl,
-        touched,
-        range_cm,
-    )
+    points, labels = _compact(t.cos_phi, t.sin_phi, t.tan_theta, t.ground_d, t.ground_pts, t.first_ground,
+                              best_d, best_lbl, touched, range_cm)
     return Sweep(points, labels, range_cm)
+
+
+def range_image_prepared(
+    prepared: np.ndarray, pose: np.ndarray, sensor_z_m: float, cfg: LidarConfig, skip_box: int
+) -> RangeImage:
+    """``scan_prepared``'s range image, without the points and labels it would build
+    and the world does not need for most vehicles (~1.8 MB of fresh arrays a scan)."""
+    t = _tables(cfg, float(sensor_z_m))
+    best_d, best_lbl, touched = _cast_prepared(prepared, pose, sensor_z_m, cfg, skip_box, t)
+    range_cm = np.empty((cfg.azimuth_steps, cfg.beams), dtype=np.uint16)
+    box_hits = np.zeros(prepared.shape[0], dtype=np.int64)
+    _range_image(t.ground_cm, best_d, best_lbl, touched, range_cm, box_hits)
+    return RangeImage(range_cm, box_hits)
+
+
+def _cast_prepared(
+    prepared: np.ndarray, pose: np.ndarray, sensor_z_m: float, cfg: LidarConfig, skip_box: int, t: _Tables
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Casts into the shared scratch arrays and returns them: use them before the next cast."""
+    best_d, best_lbl, touched = _scratch(cfg.azimuth_steps, cfg.beams)
+    _cast(prepared, float(pose[0]), float(pose[1]), float(pose[2]), float(sensor_z_m), int(skip_box),
+          t.cos_phi, t.sin_phi, t.tan_theta, t.d_limit, t.ground_d, best_d, best_lbl, touched)
+    return best_d, best_lbl, touched
 
 
 def scan(
@@ -364,3 +431,4 @@ def warm_up(cfg: LidarConfig | None = None) -> None:
     cfg = cfg or LidarConfig()
     boxes = np.array([[10.0, 0.0, 0.0, 4.5, 1.8, 1.5]])
     scan(boxes, np.zeros(3), cfg.mount_height_m, cfg)
+    range_image_prepared(prepare_boxes(boxes), np.zeros(3), cfg.mount_height_m, cfg, -1)

@@ -30,14 +30,12 @@ PHYSICS_DT_S = 0.01
 
 @dataclass(frozen=True, slots=True)
 class Sensed:
-    """One vehicle's view for a tick (world-internal: labels are ground truth)."""
+    """One vehicle's view for a tick: what its Scan carries."""
 
     vid: int
     pose: Pose
     speed_mps: float
-    points: np.ndarray  # float32 (n, 3), sensor frame
-    labels: np.ndarray  # int32 (n,), box index hit or -1 for ground
-    range_cm: np.ndarray  # uint16 (steps, beams): what the vehicle's Scan carries
+    range_cm: np.ndarray  # uint16 (steps, beams)
 
 
 class Simulation:
@@ -57,7 +55,7 @@ class Simulation:
         self.mount_m = np.array([a.mount_height_m for a in actors])
         self.judge = Judge(self.scenario)
         self.tick = 0
-        self._collider_view: Sensed | None = None
+        self._collider_points: np.ndarray | None = None  # its LiDAR's points this tick, for its driver
         self._collider_in_ego_view = 0
         self._passive = self.scenario.passive()
 
@@ -99,14 +97,14 @@ class Simulation:
         self._collider_in_ego_view = 0
         for vid in wanted:
             x, y, yaw = poses[vid]
-            sweep = lidar.scan_prepared(prepared, poses[vid], float(self.mount_m[vid]), self.lidar_cfg, vid)
-            view = Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), *sweep)
+            mount_m = float(self.mount_m[vid])
             if vid == col:
-                self._collider_view = view
+                self._collider_points = lidar.scan_prepared(prepared, poses[vid], mount_m, self.lidar_cfg, vid).points
                 continue
+            image = lidar.range_image_prepared(prepared, poses[vid], mount_m, self.lidar_cfg, vid)
             if vid == ego:
-                self._collider_in_ego_view = int(np.count_nonzero(view.labels == col))
-            yield view
+                self._collider_in_ego_view = int(image.box_hits[col])
+            yield Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), image.range_cm)
 
     def truth(self) -> WorldTruth:
         """Every vehicle's true pose, speed and size now."""
@@ -136,12 +134,12 @@ class Simulation:
             phys.step(self.physics_dt_s)
             self.judge.observe_step(phys)
         self.tick += 1
-        self._collider_view = None
+        self._collider_points = None
 
     def _drive_passive(self) -> None:
         """Commands for the world-driven vehicles (driver.py)."""
         phys, col = self.physics, self.scenario.collider
-        if col.brake_lengths > 0 and self._collider_view is None:
+        if col.brake_lengths > 0 and self._collider_points is None:
             self.sense([])
         outline = owner = None
         for a in self._passive:
@@ -150,7 +148,7 @@ class Simulation:
             if a.speed_mps <= 0.0 or a.brake_lengths <= 0.0:
                 gap = np.inf
             elif a is col:
-                gap = driver.free_distance_ahead(self._collider_view.points, a.spec, a.mount_height_m, horizon)
+                gap = driver.free_distance_ahead(self._collider_points, a.spec, a.mount_height_m, horizon)
             else:
                 if outline is None:
                     outline, owner = driver.outline_points(phys.boxes(self.heights_m))

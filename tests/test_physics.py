@@ -68,3 +68,15 @@ def test_side_by_side_lanes_do_not_touch():
     phys = Physics([CAR, TRUCK], np.array([[0.0, 0.0, 0.0], [0.0, 3.5, 0.0]]), np.array([10.0, 9.0]))
     _drive(phys, 3.0)
     assert phys.contacts == []
+
+
+def test_the_bodies_stay_where_the_vehicles_are():
+    """pymunk's bodies follow the vehicles, moving or parked, and never move on their own."""
+    phys = Physics([CAR, CAR, TRUCK], np.array([[0.0, 0.0, 0.0], [0.0, 10.0, 0.5], [20.0, -5.0, 1.0]]),
+                   np.array([10.0, 0.0, 5.0]))
+    phys.command(0, 0.0, 0.2)
+    phys.command(2, -10.0, 0.0)  # stops within the second, then holds still
+    _drive(phys, 1.5)
+    for body, x, y, yaw in zip(phys.bodies, phys.x, phys.y, phys.yaw):
+        assert tuple(body.position) == (x, y) and body.angle == yaw
+        assert tuple(body.velocity) == (0.0, 0.0) and body.angular_velocity == 0.0

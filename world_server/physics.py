@@ -63,6 +63,7 @@ class Physics:
             self.space.add(body, shape)
             self.bodies.append(body)
         self.space.on_collision(_VEHICLE, _VEHICLE, begin=self._on_begin, separate=self._on_separate)
+        self._synced_x = self._synced_y = self._synced_yaw = np.full(n, np.nan)  # where the bodies are: nowhere yet
         self._sync_bodies()
         self.space.step(1e-6)  # register initial overlaps (spawned touching = a bad scenario)
 
@@ -81,11 +82,15 @@ class Physics:
             self._touching.discard(tuple(sorted(b.vid for b in bodies)))
 
     def _sync_bodies(self) -> None:
-        for body, x, y, yaw in zip(self.bodies, self.x, self.y, self.yaw):
-            body.position = (x, y)
-            body.angle = yaw
-            body.velocity = (0.0, 0.0)
-            body.angular_velocity = 0.0
+        """Put the pymunk bodies where the vehicles are. Only the ones that moved: pymunk
+        leaves a body where it was put, at zero velocity (sensor shapes take no impulses,
+        and the space has no gravity or forces)."""
+        moved = (self.x != self._synced_x) | (self.y != self._synced_y) | (self.yaw != self._synced_yaw)
+        for i in np.flatnonzero(moved):
+            body = self.bodies[i]
+            body.position = (self.x[i], self.y[i])
+            body.angle = self.yaw[i]
+        self._synced_x, self._synced_y, self._synced_yaw = self.x.copy(), self.y.copy(), self.yaw.copy()
 
     def command(self, i: int, accel_mps2: float, steer_rad: float) -> None:
         """Set vehicle ``i``'s actuation, clipped to its limits."""

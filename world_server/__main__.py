@@ -19,7 +19,7 @@ from deploy.procs import ProcessManager, ProcSpec
 from protocol import keys
 from protocol.security import Verifier
 from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
-from world_server import lidar
+from world_server import geometry, lidar
 from world_server.scenarios import ScenarioError, load_scenario_file, params_from_dict
 from world_server.server import WorldServer
 from world_server.sim import Simulation
@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     if not z.listen and not z.connect and not z.config_file:
         z = ZenohArgs(listen=(DEFAULT_HUB,))
     lidar.warm_up(sim.lidar_cfg)
+    geometry.warm_up()
     agent_hub = list(z.listen[:1] or z.connect[:1])
     with session_scope(z) as session, ProcessManager() as procs:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,

@@ -1,8 +1,12 @@
-"""Small planar geometry shared by the map, the scenarios and the judge (numpy only)."""
+"""Small planar geometry shared by the map, the scenarios and the judge (numpy; numba
+for the judge's distance between bodies, measured at every physics step)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 
 def arc_lengths(poly: np.ndarray) -> np.ndarray:
@@ -96,33 +100,80 @@ def box_corners(cx, cy, yaw, length, width) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
-def _point_segment_dist(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance from each point (n, 2) to each segment (m, 2)-(m, 2): (n, m)."""
-    ab = b - a
-    ap = pts[:, None, :] - a[None, :, :]
-    t = np.clip(np.einsum("nmk,mk->nm", ap, ab) / np.maximum(np.einsum("mk,mk->m", ab, ab), 1e-12), 0, 1)
-    closest = a[None] + t[..., None] * ab[None]
-    return np.linalg.norm(pts[:, None, :] - closest, axis=2)
+@njit(cache=True)
+def _corners_inside(pts: np.ndarray, poly: np.ndarray) -> bool:
+    """Whether any of the points (n, 2) lies inside the convex counter-clockwise polygon."""
+    m = poly.shape[0]
+    for i in range(pts.shape[0]):
+        inside = True
+        for k in range(m):
+            ex = poly[(k + 1) % m, 0] - poly[k, 0]
+            ey = poly[(k + 1) % m, 1] - poly[k, 1]
+            if not ex * (pts[i, 1] - poly[k, 1]) - ey * (pts[i, 0] - poly[k, 0]) >= 0:
+                inside = False
+                break
+        if inside:
+            return True
+    return False
 
 
-def _inside(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Points inside a convex counter-clockwise polygon."""
-    e = np.roll(poly, -1, axis=0) - poly
-    rel = pts[:, None, :] - poly[None]
-    cross = e[None, :, 0] * rel[..., 1] - e[None, :, 1] * rel[..., 0]
-    return np.all(cross >= 0, axis=1)
+@njit(cache=True)
+def _edges_cross(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether an edge of closed polygon ``a`` crosses one of ``b`` (as ``first_crossing``)."""
+    for i in range(a.shape[0]):
+        rx = a[(i + 1) % a.shape[0], 0] - a[i, 0]
+        ry = a[(i + 1) % a.shape[0], 1] - a[i, 1]
+        for j in range(b.shape[0]):
+            sx = b[(j + 1) % b.shape[0], 0] - b[j, 0]
+            sy = b[(j + 1) % b.shape[0], 1] - b[j, 1]
+            rxs = rx * sy - ry * sx
+            if not abs(rxs) > 1e-12:
+                continue  # parallel
+            qpx = b[j, 0] - a[i, 0]
+            qpy = b[j, 1] - a[i, 1]
+            t = (qpx * sy - qpy * sx) / rxs
+            u = (qpx * ry - qpy * rx) / rxs
+            if t >= 0 and t <= 1 and u >= 0 and u <= 1:
+                return True
+    return False
 
 
+@njit(cache=True)
+def _corners_to_edges(pts: np.ndarray, poly: np.ndarray) -> float:
+    """The least distance from the points (n, 2) to the closed polygon's edges."""
+    best = np.inf
+    m = poly.shape[0]
+    for k in range(m):
+        abx = poly[(k + 1) % m, 0] - poly[k, 0]
+        aby = poly[(k + 1) % m, 1] - poly[k, 1]
+        len2 = max(abx * abx + aby * aby, 1e-12)
+        for i in range(pts.shape[0]):
+            apx = pts[i, 0] - poly[k, 0]
+            apy = pts[i, 1] - poly[k, 1]
+            t = min(max((apx * abx + apy * aby) / len2, 0.0), 1.0)
+            dx = pts[i, 0] - (poly[k, 0] + t * abx)
+            dy = pts[i, 1] - (poly[k, 1] + t * aby)
+            best = min(best, math.sqrt(dx * dx + dy * dy))
+    return best
+
+
+@njit(cache=True)
 def rect_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance between two convex quads (4, 2); 0 when they overlap."""
-    if _inside(a, b).any() or _inside(b, a).any():
+    """Distance between two convex counter-clockwise quads (4, 2); 0 when they overlap.
+
+    In numba: the judge measures it at every physics step."""
+    if _corners_inside(a, b) or _corners_inside(b, a):
         return 0.0
-    ea, eb = np.roll(a, -1, axis=0), np.roll(b, -1, axis=0)
-    # edges crossing without a corner inside (a cross shape) overlap too
-    if first_crossing(np.vstack([a, a[:1]]), np.vstack([b, b[:1]])) is not None:
+    if _edges_cross(a, b):  # edges crossing without a corner inside (a cross shape) overlap too
         return 0.0
-    return float(min(_point_segment_dist(a, b, eb).min(), _point_segment_dist(b, a, ea).min()))
+    return min(_corners_to_edges(a, b), _corners_to_edges(b, a))
 
 
 def wrap_angle(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def warm_up() -> None:
+    """Compile (or load from the numba cache) ``rect_distance`` before the first tick."""
+    a = box_corners(0.0, 0.0, 0.0, 4.5, 1.8)
+    rect_distance(a, a + 10.0)

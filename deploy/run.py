@@ -255,12 +255,13 @@ def warm_numba_caches(params: ScenarioParams) -> None:
     fuse, plan, control) on the scenario's first scans and the scheduler bench's
     warm-up. A failure only costs the agents compile time.
     """
-    from world_server import lidar
+    from world_server import geometry, lidar
     from world_server.sim import Simulation
 
     t0 = time.perf_counter()
     sim = Simulation(params)
     lidar.warm_up(sim.lidar_cfg)
+    geometry.warm_up()  # the judge's distance, at every physics step
     try:
         _warm_agent_kernels(sim)
     except Exception:  # warming is an optimisation; the agents compile what is missing

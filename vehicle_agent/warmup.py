@@ -89,10 +89,14 @@ def _warm_merged_perception(agent: Agent, scan: Scan) -> None:
 def _warm_conflict(agent: Agent) -> None:
     """The synthetic scene has nothing moving, so the planner never predicts a conflict
     in it: a car that crosses the route 10 m ahead when the vehicle gets there loads the
-    conflict kernel (both its uses: the timed test and the swept zone)."""
+    conflict kernel (both its uses: the timed test and the swept zone). The route's
+    first 30 m are taken every metre: the ego's first waypoints are 46 m apart, and the
+    test looks at waypoints only, so the car passed between them unseen and the swept
+    zone's kernel was left for the first real conflict to load."""
     route = np.asarray(agent.mission.route, dtype=float)
     s = arc_lengths(route)
-    path = route[s <= 30.0] if (s <= 30.0).sum() >= 2 else route[:2]
+    along = np.arange(0.0, min(30.0, float(s[-1])) + 1e-9, 1.0) if s[-1] >= 2.0 else s
+    path = np.column_stack([np.interp(along, s, route[:, 0]), np.interp(along, s, route[:, 1])])
     a, b = path[0], path[-1]
     d = (b - a) / max(float(np.hypot(*(b - a))), 1e-9)
     normal = np.array([-d[1], d[0]])

@@ -17,7 +17,7 @@ import numpy as np
 from protocol.codec import encode
 from protocol.messages import Scan, Tick
 from vehicle_agent.control import VehicleController
-from world_server import lidar
+from world_server import geometry, lidar
 from world_server.scenarios import ScenarioParams
 from world_server.sim import Simulation
 
@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     sim = Simulation(ScenarioParams(scenario=args.scenario, vehicles=args.vehicles, seed=args.seed,
                                     delta_s=3.0, duration_s=600.0))
     lidar.warm_up(sim.lidar_cfg)
+    geometry.warm_up()
     vids = sim.connected_vids
     actors = sim.scenario.actors
     ctl = {v: VehicleController(actors[v].spec) for v in vids}

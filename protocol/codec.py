@@ -537,6 +537,8 @@ def _fields_reader(key: tuple[type, tuple[str, ...]]) -> Converter:
         env[f"c{i}"] = _converter(hints[name])
         expr = _inline(hints[name], f"c{i}") or f"c{i}(v)"
         lines += [f"        at = {i}", f"        v = values[{index[name]}]", f"        a{i} = {expr}"]
+    if not names:
+        lines.append("        pass")
     lines += ["    except _FieldError as err:",
               "        raise MalformedMessage(f\"{cls_name}.{names[at]}{''.join(err.path)}: {err.text}\") from None",
               "    except (TypeError, ValueError) as exc:",

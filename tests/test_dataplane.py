@@ -548,9 +548,10 @@ def test_neighbor_table_places_older_messages_along_their_trajectories_like_inte
 
 
 def test_neighbor_table_places_hostile_trajectories_as_searchsorted_does():
-    """Times out of order, repeated, or NaN (a peer's control message is not ours to
-    trust): an older message is placed after the waypoint np.searchsorted(side="right")
-    finds, as the per-vehicle numpy formulation placed it."""
+    """Times out of order, repeated, NaN or infinite, none or one waypoint (a peer's
+    control message is not ours to trust): an older message is placed after the
+    waypoint np.searchsorted(side="right") finds, as the per-vehicle numpy formulation
+    placed it; one of fewer than two waypoints stands at its pose."""
     from protocol.messages import ControlMsg, ObjectMap
     from vehicle_agent.dataplane import NeighborTable
 
@@ -569,13 +570,18 @@ def test_neighbor_table_places_hostile_trajectories_as_searchsorted_does():
     rng = np.random.default_rng(11)
     table = NeighborTable(max_age_s=10.0)
     for vid in range(1, 30):
-        times = rng.choice([0.5, 1.0, 1.0, 2.0, 3.0, np.nan, -1.0], int(rng.integers(2, 7)))
+        times = rng.choice([0.5, 1.0, 1.0, 2.0, 3.0, np.nan, -1.0, np.inf], int(rng.integers(0, 7)))
         traj = np.column_stack([rng.normal(0, 20, (len(times), 2)), times]).astype(np.float32)
         table.update([ControlMsg(0, 0.0, vid, Pose(0.0, 0.0, 0.0), 5.0, traj, empty, z)])
     for t_now in (0.2, 1.0, 1.5, 2.5, 4.0):
         got = table.current(t_now, exclude=-1)
         for i, vid in enumerate(got.vid.tolist()):
-            want_xy, want_traj = reference(np.asarray(table.last[vid].trajectory, dtype=np.float64), t_now)
+            traj = np.asarray(table.last[vid].trajectory, dtype=np.float64)
+            if len(traj) < 2:  # none or one waypoint: as sent, at its pose
+                np.testing.assert_array_equal(got.xy[i], [0.0, 0.0])
+                np.testing.assert_array_equal(got.trajectory(i), traj)
+                continue
+            want_xy, want_traj = reference(traj, t_now)
             np.testing.assert_array_equal(got.xy[i], want_xy)
             np.testing.assert_array_equal(got.trajectory(i), want_traj)
 

@@ -127,6 +127,7 @@ def test_decode_fields_reads_the_named_fields_as_decode_does_and_no_others():
     """The named fields of a message, equal to ``decode``'s, checked as it checks them;
     the fields not named are not read, so a fault there goes unnoticed (by design)."""
     scan = Scan(7, 0.7, 3, Pose(1.0, 2.0, 0.5), 4.0, np.arange(6, dtype=np.uint16).reshape(2, 3))
+    assert decode_fields(encode(scan), Scan, ()) == ()
     tick, pose, ranges = decode_fields(encode(scan), Scan, ("tick", "pose", "range_cm"))
     whole = decode(encode(scan), Scan)
     assert (tick, pose) == (whole.tick, whole.pose) and np.array_equal(ranges, whole.range_cm)

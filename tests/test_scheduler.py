@@ -119,6 +119,8 @@ def test_instance_rejects_bad_input():
     ("owner", [-1, 1, 2], "owner out of range"),
     ("object_id", [5, 5, 2], None),  # fine: object ids ascend within an owner only
     ("owner", [1, 0, 2], "objects must be sorted by (owner, object_id)"),
+    ("object_id", [6, 6, 7], None),  # different owners: no duplicate
+    ("object_id", [-(2**63) + 1, 2**62, 7], None),  # ids 2^63 apart: no int64 difference to overflow
     ("size_bytes", [10, 0, 10], "size_bytes must be positive"),
     ("reward", [[0.5, 0.0, 0.0], [0.0, 0.0, 0.5], [0.0, 0.2, 0.0]], "reward to the owner itself must be 0"),
     ("reward", [[0.0, np.nan, 0.0], [0.0, 0.0, 0.5], [0.5, 0.2, 0.0]], "reward must lie in [0, 1]"),
@@ -128,7 +130,8 @@ def test_instance_names_the_first_bad_value(field, value, message):
     """Each value check on its own: an instance that breaks it is refused with its
     message, and the unbroken instance is accepted."""
     fields = dict(vids=np.array([1, 2, 3]), owner=np.array([0, 1, 2]), object_id=np.array([5, 6, 7]),
-                  size_bytes=np.array([10, 10, 10]), reward=np.array([[0.0, 0.5, 0.0], [0.0, 0.0, 0.5], [0.5, 0.2, 0.0]]),
+                  size_bytes=np.array([10, 10, 10]),
+                  reward=np.array([[0.0, 0.5, 0.0], [0.0, 0.0, 0.5], [0.5, 0.2, 0.0]]),
                   p_deliver=np.full((3, 3), 0.5), history=np.zeros((3, 3), dtype=bool), frame_bytes=100, n_frames=1,
                   frame_duration_s=0.01, bandwidth_bps=6e6, unseen=np.zeros(3))
     Instance(**fields)
@@ -138,6 +141,17 @@ def test_instance_names_the_first_bad_value(field, value, message):
         return
     with pytest.raises(ValueError, match=re.escape(message)):
         Instance(**{**fields, field: broken})
+
+
+def test_instance_names_a_duplicate_object_and_a_bad_dtype_before_any_value():
+    fields = dict(vids=np.array([1, 2, 3]), owner=np.array([0, 0, 2]), object_id=np.array([5, 5, 7]),
+                  size_bytes=np.array([10, 10, 10]), reward=np.zeros((3, 3)), p_deliver=np.full((3, 3), 0.5),
+                  history=np.zeros((3, 3), dtype=bool), frame_bytes=100, n_frames=1, frame_duration_s=0.01,
+                  bandwidth_bps=6e6, unseen=np.zeros(3))
+    with pytest.raises(ValueError, match=re.escape("duplicate (owner, object_id)")):
+        Instance(**fields)
+    with pytest.raises(ValueError, match=re.escape("history must be bool (K, C)")):  # checked before the values
+        Instance(**{**fields, "history": np.zeros((3, 3))})
 
 
 def test_link_probability_falls_with_distance():

@@ -57,9 +57,9 @@ group's objects with the same compensated H/s.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np

@@ -134,13 +134,14 @@ def _take_packed(waypoints, starts, keep):
 
 
 @njit(cache=True)
-def _place(waypoints, starts, pose_xy, fresh, t_now):
+def _place(waypoints, starts, pose_xy, fresh, t_now_s):
     """Each vehicle ``i`` (trajectory ``waypoints[starts[i]:starts[i + 1]]``) now: where
     it is (xy (n, 2)) and its trajectory from there, packed (waypoints, starts). A fresh
     one, or one of fewer than two waypoints, as sent (at ``pose_xy[i]``); an older one
-    placed along its trajectory at ``t_now`` with np.interp's clamping and formula, its
-    waypoints at or before ``t_now`` dropped for that point. The first waypoint after
-    ``t_now`` is found as np.searchsorted(side="right") finds it (NaN sorts last)."""
+    placed along its trajectory at ``t_now_s`` with np.interp's clamping and formula, its
+    waypoints at or before ``t_now_s`` dropped for that point. The first waypoint after
+    ``t_now_s`` is found as np.searchsorted(side="right") finds it, NaN times sorting last
+    (``t_now_s``, the world's clock, is never NaN)."""
     n = len(starts) - 1
     xy = np.empty((n, 2))
     first = np.full(n, -1, dtype=np.int64)  # -1: as sent; else the first waypoint after now
@@ -155,7 +156,7 @@ def _place(waypoints, starts, pose_xy, fresh, t_now):
         while lo < hi:
             mid = lo + ((hi - lo) >> 1)
             v = waypoints[a + mid, 2]
-            if t_now < v or v != v:
+            if t_now_s < v or v != v:
                 hi = mid
             else:
                 lo = mid + 1
@@ -171,7 +172,7 @@ def _place(waypoints, starts, pose_xy, fresh, t_now):
             dt = waypoints[q, 2] - waypoints[p, 2]
             for c in range(2):
                 slope = (waypoints[q, c] - waypoints[p, c]) / dt
-                xy[i, c] = slope * (t_now - waypoints[p, 2]) + waypoints[p, c]
+                xy[i, c] = slope * (t_now_s - waypoints[p, 2]) + waypoints[p, c]
         out_starts[i + 1] = out_starts[i] + b - a - lo + 1
     out = np.empty((out_starts[n], 3))
     for i in range(n):
@@ -181,7 +182,7 @@ def _place(waypoints, starts, pose_xy, fresh, t_now):
         elif first[i] == b - a:
             out[o] = waypoints[b - 1]
         else:
-            out[o, 0], out[o, 1], out[o, 2] = xy[i, 0], xy[i, 1], t_now
+            out[o, 0], out[o, 1], out[o, 2] = xy[i, 0], xy[i, 1], t_now_s
             out[o + 1:out_starts[i + 1]] = waypoints[a + first[i]:b]
     return xy, out, out_starts
 
@@ -271,9 +272,10 @@ class DataPlane:
             dims = np.array([[max(t.detection.length_m, t.detection.width_m, 1.0), max(t.detection.width_m, 1.0)]
                              for t in tracks]).reshape(-1, 2)
             vel = np.array([t.velocity for t in tracks], dtype=np.float64).reshape(-1, 2)
-            rel = relevance((receivers.waypoints, receivers.starts), np.tile(DEFAULT_DIMS, (len(receivers), 1)),
+            rel = relevance(receivers.waypoints, np.tile(DEFAULT_DIMS, (len(receivers), 1)),
                             centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode,
-                            obj_heading=np.array([t.heading_rad for t in tracks], dtype=np.float64))
+                            obj_heading=np.array([t.heading_rad for t in tracks], dtype=np.float64),
+                            starts=receivers.starts)
         return ObjectMap(ids, sizes, centroids.astype(np.float32),
                          receivers.vid,
                          np.ascontiguousarray(vis.T), np.ascontiguousarray(rel.T))

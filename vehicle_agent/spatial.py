@@ -351,20 +351,21 @@ def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) ->
     return pos, head
 
 
-def relevance(trajectories: list[np.ndarray] | tuple[np.ndarray, np.ndarray], dims_j: np.ndarray, obj_xy: np.ndarray, obj_vel: np.ndarray,
-              obj_dims: np.ndarray, t_now_s: float, mode: str = "bool", horizon_s: float = HORIZON_S,
-              step_s: float = STEP_S, safety_m: float = SAFETY_M, obj_heading: np.ndarray | None = None,
-              window_s: float = WINDOW_S) -> np.ndarray:
+def relevance(trajectories: list[np.ndarray] | np.ndarray, dims_j: np.ndarray, obj_xy: np.ndarray,
+              obj_vel: np.ndarray, obj_dims: np.ndarray, t_now_s: float, mode: str = "bool",
+              horizon_s: float = HORIZON_S, step_s: float = STEP_S, safety_m: float = SAFETY_M,
+              obj_heading: np.ndarray | None = None, window_s: float = WINDOW_S,
+              starts: np.ndarray | None = None) -> np.ndarray:
     """(J, K) relevance of each object to each vehicle's trajectory.
 
-    ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s], or all of them packed as
-    (waypoints float64 (P, 3), starts int64 (J + 1,)), trajectory j
-    ``waypoints[starts[j]:starts[j + 1]]``; ``dims_j`` (J, 2) length,
+    ``trajectories[j]``: waypoints (p, 3) [x, y, t_sim_s]; or, with ``starts`` (int64
+    (J + 1,)), all of them packed in one float64 (P, 3) array, trajectory j
+    ``trajectories[starts[j]:starts[j + 1]]``; ``dims_j`` (J, 2) length,
     width; objects: centroid (K, 2), velocity (K, 2), dims (K, 2) length, width, and
     heading (K,) (default: the direction of motion).
     """
-    if isinstance(trajectories, tuple):
-        waypoints, starts = trajectories
+    if starts is not None:
+        waypoints = trajectories
     else:
         starts = np.zeros(len(trajectories) + 1, dtype=np.int64)
         starts[1:] = np.cumsum([len(wp) for wp in trajectories])

@@ -42,8 +42,9 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     other = m.vid + 1
     other_msg = _as_received(ControlMsg(0, 0.0, other, Pose(x + 5.0, y + 5.0, yaw), 5.0,
                                         np.array([[x + 5.0, y + 5.0, 0.0], [x + 30.0, y + 5.0, 5.0]], np.float32),
-                                        agent.dataplane.object_map(view, Neighbors.none()), np.array([m.vid], np.int64)))
-    heard = HeardControl.read(encode(other_msg))  # as the link reads it: the codec's field index is built
+                                        agent.dataplane.object_map(view, Neighbors.none()),
+                                        np.array([m.vid], np.int64)))
+    heard = HeardControl.read(encode(other_msg))  # as the link reads it: the codec's reader of its fields is built
     agent.dataplane.neighbors.update([heard])
     # every object once unscheduled: the scheduler state's join of starvation counters loads too
     own = agent.control_message(view, scan, heard=[other], unscheduled={t.track_id: 1 for t in view.tracks})

@@ -240,7 +240,6 @@ def _cast(
                     best_lbl[col, b] = k
 
 
-
 @njit(cache=True)
 def _compact(
     cos_phi: np.ndarray,

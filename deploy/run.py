@@ -247,6 +247,13 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
+# ``warm_numba_caches`` as a command of its own (the test suite's first step, and its check
+# that nothing is left to compile): the kernels are the same for every scenario
+WARM_ARGV = (sys.executable, "-c", "from deploy.run import warm_numba_caches; "
+             "from world_server.scenarios import params_from_dict; "
+             "warm_numba_caches(params_from_dict({'scenario': 'left_turn', 'vehicles': 5}))")
+
+
 def warm_numba_caches(params: ScenarioParams) -> None:
     """Compile (or load) every numba kernel once here, so N processes load them from the cache.
 

@@ -12,6 +12,8 @@ from collections.abc import Callable
 import pytest
 from hypothesis import HealthCheck, Phase, settings
 
+from deploy.run import WARM_ARGV
+
 # Property tests run the bounded, derandomized "ci" profile (the same examples every
 # run, no per-example deadline on a loaded machine); AUTOCAST_HYPOTHESIS=fuzz runs
 # 10,000 random examples per property instead.
@@ -21,11 +23,6 @@ settings.register_profile("ci", max_examples=25, derandomize=True, deadline=None
 settings.register_profile("fuzz", max_examples=10_000, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.load_profile(os.environ.get("AUTOCAST_HYPOTHESIS", "ci"))
-
-
-# The numba kernels every run loads, compiled once: the launcher's own warm-up, for any scenario
-WARM_KERNELS = ("from deploy.run import warm_numba_caches; from world_server.scenarios import params_from_dict; "
-                "warm_numba_caches(params_from_dict({'scenario': 'left_turn', 'vehicles': 5}))")
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
@@ -38,7 +35,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         return
     t0 = time.monotonic()
     try:  # the timeout only a safety net: a cold warm-up takes 20 s here, 86 s on CI
-        done = subprocess.run([sys.executable, "-c", WARM_KERNELS], capture_output=True, text=True, timeout=900)
+        done = subprocess.run(WARM_ARGV, capture_output=True, text=True, timeout=900)
         failure = f"exit {done.returncode}:\n{done.stderr[-2000:]}" if done.returncode != 0 else ""
     except subprocess.TimeoutExpired:
         failure = "no end in 900 s"

@@ -14,6 +14,7 @@ from numba.core.dispatcher import Dispatcher
 
 from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
+from deploy.run import WARM_ARGV
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, Scan
 from vehicle_agent.agent import Agent
@@ -90,9 +91,7 @@ def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
     and sharing scheme then load. A kernel it misses compiles inside a tick instead, in
     every agent at once; on CI one such compile outlasted a test's safety net."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    warm = ("from deploy.run import warm_numba_caches; from world_server.scenarios import params_from_dict; "
-            "warm_numba_caches(params_from_dict({'scenario': 'left_turn', 'vehicles': 5}))")
-    subprocess.run([sys.executable, "-c", warm], env=env, check=True, capture_output=True, timeout=900)
+    subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, timeout=900)
     cached = {p.name for p in (tmp_path / "numba").rglob("*.nbc")}
     assert cached, "the warm-up wrote no numba cache"
     for scenario, scheme in (("overtaking", "autocast"), ("left_turn", "emp")):

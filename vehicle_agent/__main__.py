@@ -35,6 +35,7 @@ from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
 from vehicle_agent.guard import Guard
 from vehicle_agent.link import V2VLink
+from vehicle_agent.planning import holds_still
 from vehicle_agent.scheduler import UnknownSchedulerError
 from vehicle_agent.scheduler import get as get_scheduler
 from vehicle_agent.warmup import warm_up
@@ -124,8 +125,9 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     except TimeoutError as exc:
         log.error("world never answered: %s", exc)
         return 2
-    link = None if args.scheme in ("single", "lane") else V2VLink(session, run, vid, drops, stop)
     report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
+    link = None if args.scheme in ("single", "lane") else \
+        V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None))
     guard = Guard(args.credentials, drops) if args.credentials is not None else None
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
                     report_pub.put if report_pub is not None else None, guard)
@@ -291,6 +293,13 @@ class ProcessCpu:
         return out
 
 
+def fuses(mission: Mission, reports: bool) -> bool:
+    """Whether the vehicle fuses what it receives. One that holds still plans the same
+    whatever it receives (``Planner.hold``): it shares what it sees but fuses nothing,
+    unless it reports its fused view (the ego, ``reports``)."""
+    return not holds_still(mission) or reports
+
+
 class Pipeline:
     """One scheme's per-interval step around the Agent's stages."""
 
@@ -312,9 +321,7 @@ class Pipeline:
         self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report = report
-        # a vehicle that holds still plans the same whatever it receives (Planner.hold): it
-        # shares what it sees but fuses nothing, unless it reports its fused view (the ego)
-        self.fuses = not self.agent.planner.holds_still or report is not None
+        self.fuses = fuses(mission, report is not None)
         self.timings: dict[str, list[float]] = {}
 
     def wire(self, cmd: Command) -> bytes:

@@ -667,6 +667,11 @@ def _distance_with(v0: float, v_cruise: float, accel: float, t: float) -> float:
     return (v0 + v_cruise) / 2 * t_acc + v_cruise * (t - t_acc)
 
 
+def holds_still(mission: Mission) -> bool:
+    """Whether the vehicle waits (no cruise speed): its plan is to hold still, whatever it sees."""
+    return mission.cruise_speed_mps <= 0.0
+
+
 @dataclass
 class Planner:
     """Path + speed planning for one vehicle; ``run_step`` once per decision interval."""
@@ -703,7 +708,7 @@ class Planner:
     @property
     def holds_still(self) -> bool:
         """A waiting vehicle (no cruise speed): its plan is to hold still, whatever it sees."""
-        return self.mission.cruise_speed_mps <= 0.0
+        return holds_still(self.mission)
 
     def hold(self, pose: Pose, t_now_s: float) -> Plan:
         """The plan of a vehicle that ``holds_still``: full brake where it is."""

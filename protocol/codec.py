@@ -418,7 +418,30 @@ def _inline(hint: Any, name: str) -> str | None:
         return "_array_from_wire(v)"
     if hint in (int, float, str, bool, bytes):  # _integer/_number/the type check return such a value as it is
         return f"v if type(v) is {hint.__name__} else {name}(v)"
+    spec = array_spec(hint)
+    if spec is not None:
+        return _inline_array(spec, name)
     return None
+
+
+def _inline_array(spec: Array, name: str) -> str:
+    """A declared array's conversion as one expression of ``v``: the triple exactly as
+    the encoder writes it (the declared dtype's wire name, a shape of plain ints that
+    fits the declared one, the bytes that fill it) becomes the array at once, as
+    ``_array_from_wire`` builds it (``_ndarray(shape, dtype, bytes)``); anything else
+    goes through the converter ``name``, which accepts or refuses it as ever. A vehicle
+    reads two such arrays of each of the 39 control messages it hears at 40 vehicles,
+    and the proxy ~9 of each it relays: two calls and a dozen lookups saved each."""
+    shape = "v[1]"
+    test = [f"type(v) is list", "len(v) == 3", f"v[0] == {spec.dtype!r}", "type(v[2]) is bytes",
+            f"type({shape}) is list", f"len({shape}) == {len(spec.shape)}"]
+    for axis, d in enumerate(spec.shape):
+        test.append(f"type({shape}[{axis}]) is int")
+        test.append(f"{shape}[{axis}] >= 0" if d is None else f"{shape}[{axis}] == {d}")
+    count = " * ".join([f"{shape}[{axis}]" for axis, d in enumerate(spec.shape) if d is None] +
+                       [str(math.prod(d for d in spec.shape if d is not None) * np.dtype(spec.dtype).itemsize)])
+    test.append(f"{count} == len(v[2])")
+    return f"_ndarray({shape}, _DTYPE_OF[{spec.dtype!r}], v[2]) if {' and '.join(test)} else {name}(v)"
 
 
 def _record_converter(cls: type) -> Converter:
@@ -436,7 +459,8 @@ def _record_converter(cls: type) -> Converter:
     _CONVERTERS[cls] = _placeholder(built)
     convs = [_converter(hint) for _, hint in hints]
     env: dict[str, Any] = {"cls": cls, "names": names, "_bad": _bad, "_FieldError": _FieldError,
-                           "_array_from_wire": _array_from_wire, "needs": f"{cls.__name__} needs {len(names)} fields"}
+                           "_array_from_wire": _array_from_wire, "_ndarray": np.ndarray, "_DTYPE_OF": _DTYPE_OF,
+                           "needs": f"{cls.__name__} needs {len(names)} fields"}
     lines = ["def convert(values):",
              f"    if not isinstance(values, list) or len(values) != {len(names)}:",
              "        _bad(needs)",
@@ -526,7 +550,8 @@ def _fields_reader(key: tuple[type, tuple[str, ...]]) -> Converter:
     hints = dict(_hints(cls))
     index = {name: at for at, (name, _) in enumerate(_hints(cls))}
     env: dict[str, Any] = {"names": names, "_FieldError": _FieldError, "MalformedMessage": MalformedMessage,
-                           "_array_from_wire": _array_from_wire, "cls_name": cls.__name__,
+                           "_array_from_wire": _array_from_wire, "_ndarray": np.ndarray, "_DTYPE_OF": _DTYPE_OF,
+                           "cls_name": cls.__name__,
                            "needs": f"{cls.__name__} needs {len(index)} fields"}
     lines = ["def read(values):",
              f"    if not isinstance(values, list) or len(values) != {len(index)}:",

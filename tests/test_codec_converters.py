@@ -254,3 +254,58 @@ def test_a_converter_built_in_one_thread_is_waited_for_in_another(monkeypatch):
     assert codec._CONVERTERS[Rec]([1, 2.0]) == Rec(1, 2.0)  # the placeholder, called mid-build
     builder.join(60)
     assert codec._CONVERTERS[Rec]([3, 4.0]) == Rec(3, 4.0)
+
+
+_SPECS = [codec.Array("<f4", (None, 3)), codec.Array("<i8", (None,)), codec.Array("|u1", (None, 16)),
+          codec.Array("<f4", (None, None)), codec.Array("|b1", (2, 2))]
+_DECLINED = object()
+
+
+def _fast(spec: codec.Array):
+    """The inlined conversion of ``spec`` alone: the array, or ``_DECLINED`` where it hands
+    the value to the converter."""
+    env = {"_ndarray": np.ndarray, "_DTYPE_OF": codec._DTYPE_OF, "slow": lambda v: _DECLINED}
+    return eval(f"lambda v: {codec._inline_array(spec, 'slow')}", env)  # noqa: S307 - the codec's own source
+
+
+_odd_dims = st.one_of(st.integers(-2, 40), st.booleans(), st.floats(0, 4), st.none())
+
+
+@given(spec=st.sampled_from(_SPECS), rows=st.integers(0, 5), data=st.data(),
+       mutation=st.sampled_from(["none", "dtype", "dim", "ndim", "tuple", "bytes"]))
+def test_an_inlined_array_is_the_converters_array_or_goes_to_it(spec, rows, data, mutation):
+    """Where the inlined expression takes a value, the converter takes it too and builds
+    the same array; everything else it hands to the converter. The value is a
+    well-formed triple of the spec, or one with one thing changed: the dtype, a dim (to
+    any int, a bool, a float, None), the number of dims, the shape a tuple, the bytes'
+    length."""
+    shape = [rows if d is None else d for d in spec.shape]
+    dtype = spec.dtype
+    if mutation == "dtype":
+        dtype = data.draw(st.sampled_from(sorted(codec.WIRE_DTYPES - {spec.dtype}) + ["float32", 7]))
+    elif mutation == "dim":
+        shape[data.draw(st.integers(0, len(shape) - 1))] = data.draw(_odd_dims)
+    elif mutation == "ndim":
+        shape = shape[:-1] if data.draw(st.booleans()) else shape + [1]
+    count = 1
+    for d in shape:
+        count *= d if type(d) is int and d > 0 else 0
+    item = codec._DTYPE_OF[dtype].itemsize if dtype in codec._DTYPE_OF else 4
+    extra = data.draw(st.sampled_from([-1, 1, 8])) if mutation == "bytes" else 0
+    raw = bytes(range(256)) * (max(count * item + extra, 0) // 256 + 1)
+    value = [dtype, tuple(shape) if mutation == "tuple" else shape, raw[:max(count * item + extra, 0)]]
+    got = _fast(spec)(value)
+    if mutation == "none":
+        assert got is not _DECLINED, "a well-formed array goes the fast way"
+    if got is _DECLINED:
+        return
+    want = codec._array_converter(spec)(value)
+    assert (got.dtype, got.shape, got.tobytes()) == (want.dtype, want.shape, want.tobytes())
+
+
+@pytest.mark.parametrize("spec", _SPECS)
+def test_a_well_formed_array_is_taken_inline(spec):
+    rows = 4 if spec.shape[0] is None else spec.shape[0]
+    arr = np.zeros([rows if d is None else d for d in spec.shape], dtype=spec.dtype)
+    got = _fast(spec)([arr.dtype.str, list(arr.shape), arr.tobytes()])
+    assert got is not _DECLINED and got.dtype == arr.dtype and got.shape == arr.shape

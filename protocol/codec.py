@@ -61,6 +61,8 @@ class Array:
     def __post_init__(self) -> None:
         if self.dtype not in WIRE_DTYPES:
             raise ValueError(f"dtype {self.dtype!r} cannot go on the wire")
+        if len(self.shape) > MAX_ARRAY_DIMS:
+            raise ValueError(f"{len(self.shape)} dimensions: the decoder refuses more than {MAX_ARRAY_DIMS}")
 
     def fits(self, arr: np.ndarray) -> bool:
         shape = arr.shape
@@ -430,10 +432,10 @@ def _inline_array(spec: Array, name: str) -> str:
     fits the declared one, the bytes that fill it) becomes the array at once, as
     ``_array_from_wire`` builds it (``_ndarray(shape, dtype, bytes)``); anything else
     goes through the converter ``name``, which accepts or refuses it as ever. A vehicle
-    reads two such arrays of each of the 39 control messages it hears at 40 vehicles,
-    and the proxy ~9 of each it relays: two calls and a dozen lookups saved each."""
+    reads two such arrays of every control message it hears, the proxy all of every
+    message it relays: two calls and a dozen lookups each."""
     shape = "v[1]"
-    test = [f"type(v) is list", "len(v) == 3", f"v[0] == {spec.dtype!r}", "type(v[2]) is bytes",
+    test = ["type(v) is list", "len(v) == 3", "type(v[0]) is str", f"v[0] == {spec.dtype!r}", "type(v[2]) is bytes",
             f"type({shape}) is list", f"len({shape}) == {len(spec.shape)}"]
     for axis, d in enumerate(spec.shape):
         test.append(f"type({shape}[{axis}]) is int")

@@ -282,7 +282,7 @@ def test_an_inlined_array_is_the_converters_array_or_goes_to_it(spec, rows, data
     shape = [rows if d is None else d for d in spec.shape]
     dtype = spec.dtype
     if mutation == "dtype":
-        dtype = data.draw(st.sampled_from(sorted(codec.WIRE_DTYPES - {spec.dtype}) + ["float32", 7]))
+        dtype = data.draw(st.sampled_from(sorted(codec.WIRE_DTYPES - {spec.dtype}) + ["float32", 7, np.str_(spec.dtype)]))
     elif mutation == "dim":
         shape[data.draw(st.integers(0, len(shape) - 1))] = data.draw(_odd_dims)
     elif mutation == "ndim":

@@ -36,7 +36,7 @@ def _subscribed(hub_session, link_session, key: str) -> bool:
     """Whether the link's session subscribes to ``key``, once everything it declared
     before this call reached the hub: a probe subscriber declared now, after the link's,
     must be seen first (one session's declarations arrive in order)."""
-    probe_key = f"ac/{RUN}/probe"
+    probe_key = keys.world_tick(RUN)  # a key no link subscribes to
     probe = link_session.declare_subscriber(probe_key, lambda sample: None)
     try:
         probe_pub, pub = hub_session.declare_publisher(probe_key), hub_session.declare_publisher(key)
@@ -50,7 +50,7 @@ def _subscribed(hub_session, link_session, key: str) -> bool:
 def test_a_link_that_receives_no_data_does_not_subscribe_to_the_bundle_nor_wait_for_it(sessions, receives):
     hub_session, link_session = sessions
     stop = threading.Event()
-    link = V2VLink(link_session, RUN, 3, DropCounter(), stop, timeout_s=600.0, receives_data=receives)
+    link = V2VLink(link_session, RUN, 3, DropCounter(), stop, timeout_s=60.0, receives_data=receives)
     try:
         assert _subscribed(hub_session, link_session, keys.net_data_rx(RUN)) is receives
         assert _subscribed(hub_session, link_session, keys.net_ctrl_rx(RUN)), "every link hears the control phase"
@@ -63,9 +63,11 @@ def test_a_link_that_receives_no_data_does_not_subscribe_to_the_bundle_nor_wait_
             hub_session.put(keys.net_data_rx(RUN), encode(bundle))
             got = link.exchange_data(7, 0.7, [Transmission(9, 0.0, b"q")])
             assert got == [Reception(1, 5, 0.01, b"p")]
-        else:  # no proxy answers here: a link that waited would wait its 600 s
-            assert link.exchange_data(7, 0.7, [Transmission(9, 0.0, b"q")]) == []
+        else:  # no proxy answers here: a link that waited would wait its 60 s
+            assert link.exchange_data(7, 0.7, [Transmission(9, 0.0, b"q")], receive=False) == []
             assert link.wait_s == 0.0
+            with pytest.raises(ValueError, match="does not take the data bundle"):
+                link.exchange_data(8, 0.8, [], receive=True)  # refused before it transmits
         wait_until(lambda: len(sent) == 1, "the DataTx reached the hub")  # it transmits either way
     finally:
         stop.set()

@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -178,8 +179,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                 rejected_pub.put(encode(Rejected(scan.tick, scan.t_sim_s, vid, guard.rejections.summary())))
             proc.tick_done()
     finally:
-        proc.loop_done()
         stall.close()
+        proc.loop_done()
         token.undeclare()
         if rejected_pub is not None:
             rejected_pub.undeclare()
@@ -214,12 +215,12 @@ class StallDump:
 
     A real-time timer (``SIGALRM``) is armed as the block starts and disarmed as it ends;
     faulthandler handles the signal in C, without the GIL, so a tick stuck in a kernel
-    that holds it still dumps. ``faulthandler.dump_traceback_later`` did the same with a
-    watchdog thread, started and joined every tick: ~45 us of CPU, ~1% of an agent's at
-    40 vehicles, where the two timer calls take ~1 us. Where there is no ``SIGALRM``
-    (Windows) it does nothing."""
+    that holds it still dumps. Not ``faulthandler.dump_traceback_later``: it starts and
+    joins a watchdog thread each time, which costs far more than the two timer calls
+    (docs/architecture.md, "What a tick costs around the step"). Where there is no
+    ``SIGALRM`` (Windows) it does nothing."""
 
-    def __init__(self, limit_s: float, file=None) -> None:
+    def __init__(self, limit_s: float, file: TextIO | None = None) -> None:
         self.limit_s = limit_s
         self.active = hasattr(signal, "SIGALRM") and hasattr(faulthandler, "register")
         if self.active:
@@ -247,7 +248,8 @@ class ProcessCpu:
     tick (which may still load code) to the end of the last; the main thread's over the
     same span, to tell the two apart; and, where /proc tells, each thread's by name
     (``net-0``, ``rx-1``, ...: Zenoh's; the main thread and those Zenoh runs our callbacks
-    in carry the process's name) over the same span."""
+    in carry the process's name) from the first tick to the loop's end (``loop_done``),
+    divided by the same number of ticks."""
 
     def __init__(self) -> None:
         self.ticks = 0
@@ -307,9 +309,10 @@ class ProcessCpu:
             self.threads_first = self._threads()
 
     def loop_done(self) -> None:
-        """Read the threads' clocks once the loop ends, before the teardown (read after
-        every tick they cost ~40 us of it, ~1% of an agent's CPU at 40 vehicles): their
-        span runs past the last tick by the wait for the outcome, when they do little."""
+        """Read the threads' clocks once the loop ends, before the teardown, rather than
+        after every tick, where they were a measurable part of it. Their span so runs
+        past the last tick by the wait for the outcome (or, without one, by up to
+        ``--idle-exit-s`` of waiting), when the threads do little."""
         if self.first is not None:
             self.threads_last = self._threads()
 
@@ -442,7 +445,7 @@ class Pipeline:
                 blobs = agent.dataplane.payloads(view, [t.object_id for t in slots])
             txs = [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots]
         with timed(agent.timings_ms, "link"):  # the second exchange adds to the first
-            received = link.exchange_data(scan.tick, scan.t_sim_s, txs)
+            received = link.exchange_data(scan.tick, scan.t_sim_s, txs, receive=self.fuses)
         if guard is None:
             return [r.payload for r in received]
         with timed(agent.timings_ms, "security"):

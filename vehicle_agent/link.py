@@ -60,10 +60,10 @@ class V2VLink:
     def __init__(self, session: zenoh.Session, run: str, vid: int, drops: DropCounter, stop: threading.Event,
                  timeout_s: float = 10.0, receives_data: bool = True) -> None:
         """``receives_data`` False: a vehicle that uses nothing it could decode (one that
-        fuses nothing, ``Pipeline.fuses``) transmits its objects but does not take the
-        data bundle: at 40 vehicles it is ~100 KB an interval, which its Zenoh threads
-        received and its callback decoded (~0.3 ms of its CPU), and the hub sent it.
-        What the medium delivered does not change: the proxy plays the channel alone."""
+        fuses nothing, ``__main__.fuses``) does not subscribe to the data bundle, which
+        its Zenoh threads would receive, its callback decode and the hub send every
+        interval. What the medium delivers does not change: the proxy plays the channel
+        alone."""
         self.vid, self.stop, self.timeout_s = vid, stop, timeout_s
         self.drops = drops
         self.receives_data = receives_data
@@ -105,11 +105,16 @@ class V2VLink:
         self._ctrl_pub.put(raw)
         return self._take(self._ctrl, tick)
 
-    def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
-        """Transmit our scheduled objects; return what we decoded this interval (nothing,
-        at once, if we do not ``receives_data``)."""
+    def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission],
+                      receive: bool = True) -> list[Reception]:
+        """Transmit our scheduled objects; return what we decoded this interval, or, with
+        ``receive`` False (the vehicle fuses nothing), nothing at once, without waiting
+        for the data phase to close. ``ValueError`` if the link does not take the bundle
+        (``receives_data``) and ``receive`` asks for it."""
+        if receive and not self.receives_data:
+            raise ValueError("this link does not take the data bundle (receives_data=False)")
         self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
-        if not self.receives_data:
+        if not receive:
             return []
         mine = received_in(self._take(self._data, tick), self.vid)
         if mine is None:

@@ -110,8 +110,11 @@ class ReplayLink:
         self.sent["ctrl"][tick] = raw
         return self._decode(self.ctrl_rx.get(tick), CtrlBundle)
 
-    def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission]) -> list[Reception]:
+    def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission],
+                      receive: bool = True) -> list[Reception]:
         self.sent["data"][tick] = encode(DataTx(tick, t_sim_s, self.vid, transmissions))
+        if not receive:  # as V2VLink: a vehicle that fuses nothing takes no data bundle
+            return []
         mine = received_in(self._decode(self.data_rx.get(tick), DataBundle), self.vid)
         self.missed_bundles += mine is None
         return mine or []

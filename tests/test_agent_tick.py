@@ -3,6 +3,7 @@ accounting (``ProcessCpu``) and its stall dump (``StallDump``)."""
 
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 import time
@@ -31,6 +32,7 @@ def test_the_threads_are_read_at_the_first_tick_and_once_the_loop_ends():
     proc.tick_done()
     assert not any(k.startswith("thread_") for k in proc.summary()), "read before the loop ended"
     proc.loop_done()
+    assert proc._on_gc not in gc.callbacks, "its garbage-collector hook goes with the loop"
     after = _burn(0.1)  # the teardown: not counted
     summary = proc.summary()
     threads = {k: v for k, v in summary.items() if k.startswith("thread_")}

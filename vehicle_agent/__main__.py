@@ -315,6 +315,8 @@ class ProcessCpu:
         ``--idle-exit-s`` of waiting), when the threads do little."""
         if self.first is not None:
             self.threads_last = self._threads()
+        if self._on_gc in gc.callbacks:  # the collector's time counts no further
+            gc.callbacks.remove(self._on_gc)
 
     def summary(self) -> dict[str, float]:
         """``proc_cpu``: whole-process CPU ms per tick; ``proc_main_cpu``: the main

@@ -446,6 +446,20 @@ def _inline_array(spec: Array, name: str) -> str:
     return f"_ndarray({shape}, _DTYPE_OF[{spec.dtype!r}], v[2]) if {' and '.join(test)} else {name}(v)"
 
 
+def _field_lines(env: dict[str, Any], fields: list[tuple[int, Any]]) -> list[str]:
+    """The body of a generated reader's ``try``: for the i-th of ``fields`` (its place in
+    the wire list, its type), ``at = i``, then ``a<i>``, the value converted (``_inline``
+    where a plain check does it, else the type's converter, bound in ``env`` as
+    ``c<i>``)."""
+    env.update({"_array_from_wire": _array_from_wire, "_ndarray": np.ndarray, "_DTYPE_OF": _DTYPE_OF})
+    lines = []
+    for i, (at, hint) in enumerate(fields):
+        env[f"c{i}"] = _converter(hint)
+        expr = _inline(hint, f"c{i}") or f"c{i}(v)"
+        lines += [f"        at = {i}", f"        v = values[{at}]", f"        a{i} = {expr}"]
+    return lines or ["        pass"]
+
+
 def _record_converter(cls: type) -> Converter:
     """A record's conversion, written out as one function for its fields (generated
     once per class): the field count, then each field's converter in turn, the name of
@@ -459,21 +473,14 @@ def _record_converter(cls: type) -> Converter:
     # a record may (indirectly) contain itself: whoever is built meanwhile calls through this
     built: list[Converter] = []
     _CONVERTERS[cls] = _placeholder(built)
-    convs = [_converter(hint) for _, hint in hints]
     env: dict[str, Any] = {"cls": cls, "names": names, "_bad": _bad, "_FieldError": _FieldError,
-                           "_array_from_wire": _array_from_wire, "_ndarray": np.ndarray, "_DTYPE_OF": _DTYPE_OF,
                            "needs": f"{cls.__name__} needs {len(names)} fields"}
     lines = ["def convert(values):",
              f"    if not isinstance(values, list) or len(values) != {len(names)}:",
              "        _bad(needs)",
              "    at = 0",
              "    try:"]
-    for i, (conv, (_, hint)) in enumerate(zip(convs, hints)):
-        env[f"c{i}"] = conv
-        expr = _inline(hint, f"c{i}") or f"c{i}(v)"
-        lines += [f"        at = {i}", f"        v = values[{i}]", f"        a{i} = {expr}"]
-    if not names:
-        lines.append("        pass")
+    lines += _field_lines(env, [(at, hint) for at, (_, hint) in enumerate(hints)])
     lines += ["    except _FieldError as err:",
               "        err.path.insert(0, '.' + names[at])",
               "        raise"]
@@ -552,20 +559,13 @@ def _fields_reader(key: tuple[type, tuple[str, ...]]) -> Converter:
     hints = dict(_hints(cls))
     index = {name: at for at, (name, _) in enumerate(_hints(cls))}
     env: dict[str, Any] = {"names": names, "_FieldError": _FieldError, "MalformedMessage": MalformedMessage,
-                           "_array_from_wire": _array_from_wire, "_ndarray": np.ndarray, "_DTYPE_OF": _DTYPE_OF,
-                           "cls_name": cls.__name__,
-                           "needs": f"{cls.__name__} needs {len(index)} fields"}
+                           "cls_name": cls.__name__, "needs": f"{cls.__name__} needs {len(index)} fields"}
     lines = ["def read(values):",
              f"    if not isinstance(values, list) or len(values) != {len(index)}:",
              "        raise MalformedMessage(needs)",
              "    at = 0",
              "    try:"]
-    for i, name in enumerate(names):
-        env[f"c{i}"] = _converter(hints[name])
-        expr = _inline(hints[name], f"c{i}") or f"c{i}(v)"
-        lines += [f"        at = {i}", f"        v = values[{index[name]}]", f"        a{i} = {expr}"]
-    if not names:
-        lines.append("        pass")
+    lines += _field_lines(env, [(index[name], hints[name]) for name in names])
     lines += ["    except _FieldError as err:",
               "        raise MalformedMessage(f\"{cls_name}.{names[at]}{''.join(err.path)}: {err.text}\") from None",
               "    except (TypeError, ValueError) as exc:",

@@ -707,7 +707,7 @@ class Planner:
 
     @property
     def holds_still(self) -> bool:
-        """A waiting vehicle (no cruise speed): its plan is to hold still, whatever it sees."""
+        """``holds_still`` of the vehicle's mission."""
         return holds_still(self.mission)
 
     def hold(self, pose: Pose, t_now_s: float) -> Plan:

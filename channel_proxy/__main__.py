@@ -20,6 +20,7 @@ from channel_proxy.loss import CURVES
 from channel_proxy.profiles import PROFILES, get_profile
 from channel_proxy.proxy import MODES, ChannelProxy, ProxyConfig
 from protocol.session import add_zenoh_args, session_scope, zenoh_args_from
+from protocol.shm import add_shm_arg
 
 log = logging.getLogger("channel_proxy")
 
@@ -55,6 +56,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          "docs/security.md)")
     ap.add_argument("--stay", action="store_true", help="keep running after the world's outcome")
     ap.add_argument("--log-level", default="WARNING")
+    add_shm_arg(ap)
     add_zenoh_args(ap)
     return ap.parse_args(argv)
 
@@ -88,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             phase_timeout_s=args.phase_timeout_s, dead_after=args.dead_after,
             ctrl_deadline_s=args.ctrl_deadline_s, data_deadline_s=args.data_deadline_s,
             relay_xy=tuple(args.relay_xy), emp_bytes_per_point=args.emp_bytes_per_point,
-            exit_on_outcome=not args.stay, relay_extra_frames=args.relay_extra_frames,
+            exit_on_outcome=not args.stay, relay_extra_frames=args.relay_extra_frames, shm_dir=args.shm_dir,
         )
     except (KeyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

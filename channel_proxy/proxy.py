@@ -56,6 +56,7 @@ from protocol.faults import Injector
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
                                EmpUpload, Outcome, Reception, Signed, Tick)
 from protocol.session import DropCounter, big_publisher, reliable_publisher
+from protocol.shm import ShmPublisher
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ class ProxyConfig:
     emp_bytes_per_point: float = 6.0
     exit_on_outcome: bool = True
     relay_extra_frames: bool = False  # a signed run: relay a slot's other frames too (module docstring)
+    shm_dir: str | None = None  # the bundles go through the run's shared memory (protocol.shm)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -127,7 +129,8 @@ class ChannelProxy:
         self._dead: set[int] = set()
         self._token_gone: set[int] = set()
         self._last_xy: dict[int, tuple[float, float]] = {}
-        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._pubs: dict[str, zenoh.Publisher | ShmPublisher] = {}
+        self._bundles: dict[str, ShmPublisher] = {}
         self._extras: dict[int, list] = {}  # the closed phase's frames beyond each slot's own
         self._entities: list = []
         self._cpu_mark = time.process_time()
@@ -146,6 +149,9 @@ class ChannelProxy:
                 s.declare_subscriber(keys.net_ctrl_tx(run, "*"), self._inbound("ctrl", ControlMsg)),
                 s.declare_subscriber(keys.net_data_tx(run, "*"), self._inbound("data", DataTx)),
             ]
+            self._bundles = {key: ShmPublisher(s, key, self.cfg.shm_dir)  # undeclared with _pubs
+                             for key in (keys.net_ctrl_rx(run), keys.net_data_rx(run))}
+            self._pubs.update(self._bundles)
         else:
             self._entities.append(s.declare_subscriber(keys.net_emp_up(run, "*"), self._inbound("emp", EmpUpload)))
         self._pubs["stats"] = reliable_publisher(s, keys.net_stats(run))  # the recorder and the bench count on every one
@@ -381,8 +387,8 @@ class ChannelProxy:
         out = medium.play_control(live, s_idx, sizes, loss.link_probabilities(xy, profile.prr, self.cfg.ctrl_loss),
                                   reach, capacity_bytes=profile.ctrl_capacity_bytes, seed=self.cfg.seed, tick=k)
         columns, frames = self._with_extras(senders, [ctrl[v][1] for v in senders.tolist()], self._extras)
-        self._pub(keys.net_ctrl_rx(run)).put(encode(CtrlBundle(k, tick.t_sim_s, senders[columns], live,
-                                                               np.ascontiguousarray(out.heard.T[:, columns]), frames)))
+        self._bundles[keys.net_ctrl_rx(run)].put(k, tick.t_sim_s, encode(CtrlBundle(
+            k, tick.t_sim_s, senders[columns], live, np.ascontiguousarray(out.heard.T[:, columns]), frames)))
         ctrl_stats = {
             "senders": len(senders),
             "offered_bytes": int(sizes.sum()),
@@ -448,8 +454,8 @@ class ChannelProxy:
                       for t in order.tolist()]
         twins, extra = self._extra_receptions(txs, self._extras, out.delivered.any(axis=1), rx_s)
         decoded = out.delivered[np.concatenate([order, np.array(twins, dtype=np.int64)])]
-        self._pub(keys.net_data_rx(run)).put(encode(DataBundle(k, tick.t_sim_s, live, np.ascontiguousarray(decoded.T),
-                                                               receptions + extra)))
+        self._bundles[keys.net_data_rx(run)].put(k, tick.t_sim_s, encode(DataBundle(
+            k, tick.t_sim_s, live, np.ascontiguousarray(decoded.T), receptions + extra)))
         size_col = size[:, None]
         sent = ~out.overflow
         return {

@@ -116,9 +116,10 @@ def own_keys(cfg: table.RunConfig, name: str) -> tuple[list[str], list[str]]:
     run = cfg.run_id
     if name == table.WORLD:
         return [keys.world_tick(run), keys.world_truth(run), keys.world_outcome(run), keys.scan(run, "*"),
-                keys.world_map(run), keys.mission(run, "*")], []
+                keys.in_shm(keys.scan(run, "*")), keys.world_map(run), keys.mission(run, "*")], []
     if name == table.PROXY:
-        return [keys.net_ctrl_rx(run), keys.net_data_rx(run), keys.net_stats(run), keys.net_emp_down(run, "*")], \
+        return [keys.net_ctrl_rx(run), keys.net_data_rx(run), keys.in_shm(keys.net_ctrl_rx(run)),
+                keys.in_shm(keys.net_data_rx(run)), keys.net_stats(run), keys.net_emp_down(run, "*")], \
             [keys.proxy_alive(run)]
     if name.startswith("agent"):
         vid = int(name[len("agent"):])

@@ -37,7 +37,7 @@ import zenoh
 from deploy import factory as process_factory
 from deploy import table
 from deploy.procs import ProcessManager, ProcSpec, exit_records
-from protocol import faults, keys
+from protocol import faults, keys, shm
 from protocol.codec import decode, encode
 from protocol.messages import MapMsg, Mission, Outcome, Scan
 from protocol.security import REJECTED_LINE
@@ -491,7 +491,8 @@ def launch(opts: LaunchOptions, stop: threading.Event) -> RunResult:
     with ExitStack() as stack:
         stack.enter_context(process_factory.activated())  # warm, and before any Zenoh session: see its docstring
         session, endpoint = open_hub(stack, opts.run.run_dir, locked=opts.run)
-        opts = replace(opts, run=replace(opts.run, hub=endpoint))
+        shm_dir = stack.enter_context(shm.run_directory(opts.run.run_id))  # every process is on this host
+        opts = replace(opts, run=replace(opts.run, hub=endpoint, shm_dir=str(shm_dir or "")))
         return Launcher(opts, session, stop).run()
 
 

@@ -44,6 +44,7 @@ class RunConfig:
     authority: str = ""  # the run's authority's public key (hex) once credentials are issued (deploy.credentials)
     lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.credentials)
     wait_for: tuple[str, ...] = ()  # participants besides the table's whose token the world waits for before tick 0
+    shm_dir: str = ""  # one host's run: the scans and bundles go through this directory (protocol.shm)
 
     @property
     def mcap_path(self) -> Path:
@@ -85,6 +86,8 @@ def _common(cfg: RunConfig, name: str) -> tuple[str, ...]:
     flags = ("--run-id", cfg.run_id, "--connect", cfg.hub)
     if cfg.lock_down:
         flags += ("--zenoh-config", str(zenoh_config_path(cfg, name)))
+    if cfg.shm_dir and name != RECORDER:  # the recorder subscribes to what it keeps: the writers send that over Zenoh
+        flags += ("--shm-dir", cfg.shm_dir)
     return flags
 
 

@@ -130,6 +130,15 @@ def alive_any(run: str) -> str:
     return f"{_run(run)}/alive/**"
 
 
+def in_shm(key: str) -> str:
+    """The twin of ``key`` that carries ``InShm`` notices when its payloads go through
+    shared memory (``protocol.shm``)."""
+    return f"{key}/{SHM_TWIN}"
+
+
+SHM_TWIN = "shm"
+
+
 def everything(run: str) -> str:
     """All of a run's keys, for the recorder."""
     return f"{_run(run)}/**"

@@ -452,6 +452,16 @@ class Signed:
     signature: bytes  # 64 bytes
 
 
+@message(16)
+class InShm:
+    """The payload of ``tick`` on the key this notice's key twins is in shared memory,
+    ``nbytes`` long (``protocol.shm``: on one host, scans and bundles skip the hub)."""
+
+    tick: int
+    t_sim_s: float
+    nbytes: int
+
+
 @message(15)
 class Rejected:
     """What a process has rejected as not authentic so far (``protocol.security``), by

@@ -23,7 +23,7 @@ import numpy as np
 
 from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
-from protocol import keys
+from protocol import keys, shm
 from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Rejected, Scan, Transmission
@@ -67,6 +67,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="this vehicle's key and certificate from the run's authority (protocol/security.py): "
                          "sign what it sends, accept only what verifies (docs/security.md)")
     ap.add_argument("--log-level", default="WARNING")
+    shm.add_shm_arg(ap)
     add_zenoh_args(ap)
     return ap.parse_args(argv)
 
@@ -128,7 +129,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
         return 2
     report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
     link = None if args.scheme in ("single", "lane") else \
-        V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None))
+        V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None),
+                shm_dir=args.shm_dir)
     guard = Guard(args.credentials, drops) if args.credentials is not None else None
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
                     report_pub.put if report_pub is not None else None, guard)
@@ -139,7 +141,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if args.scheme != "lane":
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
-        session.declare_subscriber(keys.scan(run, vid), typed_handler(Scan, lambda k, m: scans.put(m), drops)),
+        shm.subscribe(session, keys.scan(run, vid), args.shm_dir,
+                      typed_handler(Scan, lambda k, m: scans.put(m), drops), drops),
         session.declare_subscriber(keys.world_outcome(run),
                                    typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
     ]

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
-from protocol import keys
+from protocol import keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
     Transmission
@@ -58,8 +58,10 @@ class _Mailbox:
 
 class V2VLink:
     def __init__(self, session: zenoh.Session, run: str, vid: int, drops: DropCounter, stop: threading.Event,
-                 timeout_s: float = 10.0, receives_data: bool = True) -> None:
-        """``receives_data`` False: a vehicle that uses nothing it could decode (one that
+                 timeout_s: float = 10.0, receives_data: bool = True, shm_dir: str | None = None) -> None:
+        """``shm_dir``: the bundles come through the run's shared memory (``protocol.shm``).
+
+        ``receives_data`` False: a vehicle that uses nothing it could decode (one that
         fuses nothing, ``__main__.fuses``) does not subscribe to the data bundle, which
         its Zenoh threads would receive, its callback decode and the hub send every
         interval. What the medium delivers does not change: the proxy plays the channel
@@ -71,11 +73,12 @@ class V2VLink:
         self.missed_bundles = 0
         self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
         self._subs = [
-            session.declare_subscriber(keys.net_ctrl_rx(run), _into(self._ctrl, CtrlBundle, drops)),
+            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, _into(self._ctrl, CtrlBundle, drops), drops),
             session.declare_subscriber(keys.net_emp_down(run, vid), _into(self._emp, EmpBundle, drops)),
         ]
         if receives_data:
-            self._subs.append(session.declare_subscriber(keys.net_data_rx(run), _into(self._data, DataBundle, drops)))
+            self._subs.append(shm.subscribe(session, keys.net_data_rx(run), shm_dir,
+                                            _into(self._data, DataBundle, drops), drops))
         self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
         self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
         self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))

@@ -19,6 +19,7 @@ from deploy.procs import ProcessManager, ProcSpec
 from protocol import keys
 from protocol.security import Verifier
 from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
+from protocol.shm import add_shm_arg
 from world_server import geometry, lidar
 from world_server.scenarios import ScenarioError, load_scenario_file, params_from_dict
 from world_server.server import WorldServer
@@ -60,6 +61,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
     ap.add_argument("--log-level", default="INFO")
     add_zenoh_args(ap)
+    add_shm_arg(ap)
     return ap.parse_args(argv)
 
 
@@ -120,13 +122,14 @@ def main(argv: list[str] | None = None) -> int:
         server = WorldServer(sim, session, run_id, realtime=args.realtime,
                              agent_timeout_s=args.agent_timeout_s, startup_timeout_s=args.startup_timeout_s,
                              ego_reports=args.ego_reports, verifier=verifier, wait_for=tuple(args.wait_for),
-                             wait_for_proxy=args.wait_for_proxy)
+                             wait_for_proxy=args.wait_for_proxy, shm_dir=args.shm_dir)
         signal.signal(signal.SIGINT, lambda *_: server.stop())
         signal.signal(signal.SIGTERM, lambda *_: server.stop())
         if args.agents == "spawn":
             for vid in sim.connected_vids:
                 flags = ["--run-id", run_id, "--vid", str(vid), "--scheme", "lane"] + \
-                    [f for ep in agent_hub for f in ("--connect", ep)]
+                    [f for ep in agent_hub for f in ("--connect", ep)] + \
+                    (["--shm-dir", args.shm_dir] if args.shm_dir else [])
                 procs.start(ProcSpec(f"agent{vid}", "vehicle_agent", tuple(flags)))
         result = server.serve()
         print(summary(result))

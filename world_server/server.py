@@ -38,7 +38,8 @@ from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
 from protocol.security import Verifier
-from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler
+from protocol.session import DropCounter, reliable_publisher, typed_handler
+from protocol.shm import ShmPublisher
 from world_server.sim import Simulation
 
 log = logging.getLogger(__name__)
@@ -56,8 +57,9 @@ class WorldServer:
     def __init__(self, sim: Simulation, session: zenoh.Session, run_id: str, *, realtime: bool = False,
                  agent_timeout_s: float = 10.0, startup_timeout_s: float = 120.0, ego_reports: bool = False,
                  verifier: Verifier | None = None, wait_for: tuple[str, ...] = (),
-                 wait_for_proxy: bool = False) -> None:
+                 wait_for_proxy: bool = False, shm_dir: str | None = None) -> None:
         self.sim = sim
+        self.shm_dir = shm_dir  # the scans go through shared memory (protocol.shm)
         self.verifier = verifier
         self.faults = Injector("world")
         self.session = session
@@ -116,7 +118,7 @@ class WorldServer:
                            for key in self._awaited]
         self._tick_pub = reliable_publisher(s, keys.world_tick(run))
         self._truth_pub = reliable_publisher(s, keys.world_truth(run))
-        self._scan_pubs = {vid: big_publisher(s, keys.scan(run, vid)) for vid in self._expected}
+        self._scan_pubs = {vid: ShmPublisher(s, keys.scan(run, vid), self.shm_dir) for vid in self._expected}
         self._entities += [self._tick_pub, self._truth_pub, *self._scan_pubs.values()]
 
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -234,7 +236,8 @@ class WorldServer:
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
         self._truth_pub.put(encode(sim.truth()))
         for v in sim.sense_each(live):  # each scan goes out as soon as it is cast: its agent starts at once
-            self._scan_pubs[v.vid].put(encode(Scan(k, sim.t_sim_s, v.vid, v.pose, v.speed_mps, v.range_cm)))
+            self._scan_pubs[v.vid].put(k, sim.t_sim_s, encode(Scan(k, sim.t_sim_s, v.vid, v.pose, v.speed_mps,
+                                                                   v.range_cm)))
         if self.realtime:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
         else:

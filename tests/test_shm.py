@@ -1,0 +1,179 @@
+"""A key's payloads through shared memory (protocol.shm): what a reader copies out is
+exactly what the writer put, or a counted miss, never half of one."""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+import pytest
+
+from protocol import keys, shm
+from protocol.codec import encode
+from protocol.messages import InShm, Tick
+from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
+from protocol.shm import ShmMiss, ShmPublisher, ShmReader, ShmWriter
+from deploy.run import free_endpoint
+
+KEY = "ac/t/v/3/scan"
+
+
+def _payload(tick: int, n: int) -> bytes:
+    return bytes((tick * 7 + i) % 251 for i in range(n))
+
+
+def test_each_tick_reads_back_exactly_as_written_as_payloads_grow_and_shrink(tmp_path):
+    writer, reader = ShmWriter(tmp_path, KEY), ShmReader(tmp_path, KEY)
+    for tick, n in enumerate([10, 5000, 3, 200_000, 0, 200_001, 17]):  # both files grow while the reader has them mapped
+        notice = writer.write(tick, tick * 0.1, _payload(tick, n))
+        assert notice == InShm(tick, tick * 0.1, n)
+        assert reader.read(notice) == _payload(tick, n)
+    writer.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_previous_tick_stays_readable_and_the_one_before_is_a_miss(tmp_path):
+    writer, reader = ShmWriter(tmp_path, KEY), ShmReader(tmp_path, KEY)
+    n0, n1, n2 = (writer.write(t, 0.0, _payload(t, 100)) for t in range(3))
+    assert reader.read(n1) == _payload(1, 100)  # the other file: a reader one tick late loses nothing
+    with pytest.raises(ShmMiss, match="tick 0"):
+        reader.read(n0)  # tick 2 took its file
+    assert reader.read(n2) == _payload(2, 100)
+
+
+def test_a_payload_overwritten_while_it_is_copied_is_a_miss(tmp_path):
+    writer = ShmWriter(tmp_path, KEY)
+    notice = writer.write(0, 0.0, _payload(0, 1000))
+
+    class Racing(ShmReader):
+        """A writer two ticks ahead takes the file while the reader copies."""
+
+        def _copy(self, mm, need):
+            copied = super()._copy(mm, need)
+            writer.write(2, 0.2, _payload(2, 1000))
+            return copied
+
+    with pytest.raises(ShmMiss, match="overwritten while read"):
+        Racing(tmp_path, KEY).read(notice)
+
+
+def test_notices_that_name_nothing_there_are_misses(tmp_path):
+    writer, reader = ShmWriter(tmp_path, KEY), ShmReader(tmp_path, KEY)
+    with pytest.raises(ShmMiss, match="no shared memory"):
+        reader.read(InShm(0, 0.0, 10))  # nothing written yet
+    writer.write(0, 0.0, _payload(0, 10))
+    for bad in (InShm(0, 0.0, 11), InShm(0, 0.0, 9), InShm(2, 0.0, 10), InShm(-1, 0.0, 10), InShm(0, 0.0, 1 << 40)):
+        with pytest.raises(ShmMiss):
+            reader.read(bad)
+    assert reader.read(InShm(0, 0.0, 10)) == _payload(0, 10)
+
+
+def test_a_second_writer_of_a_key_never_truncates_the_first_ones_files(tmp_path):
+    first, second = ShmWriter(tmp_path, KEY), ShmWriter(tmp_path, KEY)
+    notice = first.write(0, 0.0, _payload(0, 4096))
+    assert second.write(0, 0.0, b"x") is None  # it publishes over Zenoh instead
+    assert ShmReader(tmp_path, KEY).read(notice) == _payload(0, 4096)
+
+
+def test_a_full_tmpfs_makes_the_writer_fall_back_to_zenoh(tmp_path, monkeypatch):
+    def full(fd, offset, length):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    writer = ShmWriter(tmp_path, KEY)
+    assert writer.write(0, 0.0, b"payload") is None
+    assert writer.write(1, 0.0, b"payload") is None
+    writer.close()
+
+
+def test_run_directory_is_removed_after_the_run_and_orphans_before_the_next(tmp_path):
+    orphan = tmp_path / f"{shm.DIR_PREFIX}999999999-old-abcd"  # no such pid
+    orphan.mkdir()
+    (orphan / "x.0").write_bytes(b"x")
+    ours = tmp_path / f"{shm.DIR_PREFIX}{os.getpid()}-other-abcd"
+    ours.mkdir()
+    with shm.run_directory("r1", parent=tmp_path) as path:
+        assert path.is_dir() and path.name.startswith(f"{shm.DIR_PREFIX}{os.getpid()}-r1-")
+        assert not orphan.exists() and ours.exists()
+        (path / "f").write_bytes(b"y")
+    assert not path.exists()
+    with shm.run_directory("r2", parent=tmp_path / "missing") as none:
+        assert none is None
+
+
+@pytest.fixture
+def sessions():
+    endpoint = free_endpoint()
+    with session_scope(ZenohArgs(listen=(endpoint,))) as hub, \
+            session_scope(ZenohArgs(connect=(endpoint,))) as a, session_scope(ZenohArgs(connect=(endpoint,))) as b:
+        yield hub, a, b
+
+
+class Inbox:
+    def __init__(self) -> None:
+        self.items: list = []
+        self._cv = threading.Condition()
+
+    def put(self, key, msg) -> None:
+        with self._cv:
+            self.items.append((key, msg))
+            self._cv.notify_all()
+
+    def wait_for(self, n: int) -> list:
+        with self._cv:
+            assert self._cv.wait_for(lambda: len(self.items) >= n, timeout=60), self.items
+            return list(self.items)
+
+
+def _wait_matching(pub, want: bool) -> None:
+    cv = threading.Event()
+    listener = pub.declare_matching_listener(lambda status: cv.set() if status.matching == want else None)
+    try:
+        if pub.matching_status.matching != want:
+            assert cv.wait(60)
+    finally:
+        listener.undeclare()
+
+
+def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices_are_counted(sessions, tmp_path):
+    _, a, b = sessions
+    key = keys.world_tick("t")
+    pub = ShmPublisher(a, key, tmp_path)
+    drops, inbox, plain = DropCounter(), Inbox(), Inbox()
+    sub = shm.subscribe(b, key, tmp_path, typed_handler(Tick, inbox.put, drops), drops)
+    _wait_matching(pub._notice, True)
+    assert not pub._pub.matching_status.matching  # the shared-memory reader does not listen on the key itself
+    ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(3)]
+    pub.put(0, 0.0, encode(ticks[0]))
+    assert inbox.wait_for(1) == [(key, ticks[0])]
+    # a subscriber on the key itself (a recorder) makes the writer put it over Zenoh too
+    zsub = b.declare_subscriber(key, typed_handler(Tick, plain.put, drops))
+    _wait_matching(pub._pub, True)
+    pub.put(1, 0.1, encode(ticks[1]))
+    assert plain.wait_for(1) == [(key, ticks[1])]
+    assert inbox.wait_for(2)[1] == (key, ticks[1])
+    # garbage, a notice of another type, and a notice of a tick that is not in shared memory
+    twin = keys.in_shm(key)
+    for bad in (b"\x00garbage", encode(ticks[0]), encode(InShm(7, 0.7, 10))):
+        a.put(twin, bad)
+    pub.put(2, 0.2, encode(ticks[2]))  # after the bad ones, on the same link: it arrives last
+    assert inbox.wait_for(3)[2] == (key, ticks[2])
+    assert drops.by_key() == {twin: 3}
+    zsub.undeclare()
+    sub.undeclare()
+    pub.undeclare()
+    assert list(Path(tmp_path).iterdir()) == []
+
+
+def test_without_a_directory_the_publisher_is_plain_zenoh(sessions):
+    _, a, b = sessions
+    key = keys.world_tick("t")
+    pub = ShmPublisher(a, key, None)
+    drops, inbox = DropCounter(), Inbox()
+    sub = shm.subscribe(b, key, None, typed_handler(Tick, inbox.put, drops), drops)
+    _wait_matching(pub._pub, True)
+    pub.put(0, 0.0, encode(Tick(0, 0.0, [1], [])))
+    assert inbox.wait_for(1) == [(key, Tick(0, 0.0, [1], []))]
+    sub.undeclare()
+    pub.undeclare()

@@ -22,6 +22,7 @@ Linux only (``/proc``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import secrets
@@ -33,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.fixed_cost import process_cpu_s
+from deploy.procs import has_argument
 
 HERE = Path(__file__).resolve().parent.parent  # this checkout
 UP_LINE = "agents up; starting"
@@ -51,13 +53,10 @@ class Sample:
 def _agent_cpu_s(run_id: str) -> dict[int, float]:
     """user + system CPU seconds of every agent process of ``run_id``, by pid."""
     out = {}
-    for pid in filter(str.isdigit, os.listdir("/proc")):
-        try:
-            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:  # gone
-            continue
-        if b"vehicle_agent" in argv and run_id.encode() in argv:
-            out[int(pid)] = process_cpu_s(int(pid))
+    for pid in map(int, filter(str.isdigit, os.listdir("/proc"))):
+        if has_argument(pid, "vehicle_agent") and has_argument(pid, run_id):
+            with contextlib.suppress(OSError):  # gone
+                out[pid] = process_cpu_s(pid)
     return out
 
 

@@ -153,6 +153,17 @@ def exit_records(log_dir: Path, tag: str) -> dict[str, dict]:
     return out
 
 
+def has_argument(pid: int, word: str) -> bool:
+    """Whether ``word`` is one of process ``pid``'s arguments as ``/proc/<pid>/cmdline``
+    shows them: one string per argument, or, for a forked child whose arguments do not
+    fit its parent's (``deploy.factory``), one string with spaces between them."""
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:  # gone
+        return False
+    return word.encode() in cmdline.replace(b"\0", b" ").split()
+
+
 def _signal(proc: Proc, sig: int) -> None:
     try:
         os.killpg(proc.pid, sig)  # the child leads its own process group

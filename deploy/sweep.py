@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, NoReturn, TextIO
 
 from deploy import factory as process_factory
+from deploy.procs import has_argument
 
 log = logging.getLogger("deploy.sweep")
 
@@ -721,11 +722,7 @@ def kill_run_processes(run_dir: Path, run_id: str) -> None:
     except (OSError, ValueError):
         return
     for pid in pids:
-        try:
-            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if run_id.encode() in cmdline:
+        if has_argument(int(pid), run_id):
             _signal_group(int(pid), signal.SIGKILL)
 
 

@@ -24,7 +24,8 @@ import zenoh
 
 from deploy import factory as process_factory
 from deploy.factory import Factory, FactoryError, ForkedProcess
-from deploy.procs import ProcessManager
+from deploy.procs import ProcessManager, has_argument
+from deploy.sweep import kill_run_processes
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command
@@ -137,6 +138,23 @@ def test_a_child_is_killed_alone(factory, tmp_path):
     for p in (procs[0], procs[2]):
         os.killpg(p.pid, signal.SIGINT)
         assert p.wait(timeout=60) == -signal.SIGINT
+
+
+def test_a_child_whose_arguments_outgrow_its_parents_still_names_its_run(factory, tmp_path):
+    """Its title is then one space-joined string (``_set_title``): the sweep must still
+    find a killed launcher's leftovers by their run id."""
+    run_id = "sweep-run-0042"
+    proc = spawn_logged(factory, tmp_path / "w.log", "wait", "--run-id", run_id, "--shm-dir", "/dev/shm/" + "x" * 400)
+    wait_until(lambda: "waiting" in (tmp_path / "w.log").read_text(), "the child is waiting")
+    cmdline = Path(f"/proc/{proc.pid}/cmdline").read_bytes().rstrip(b"\0")
+    assert b"\0" not in cmdline and cmdline.endswith(b"x" * 40)  # the long form, whole
+    assert has_argument(proc.pid, run_id) and has_argument(proc.pid, "factory_probe")
+    assert not has_argument(proc.pid, run_id[:-1]) and not has_argument(proc.pid, "sweep")
+    (tmp_path / "pids.json").write_text(json.dumps({"w": proc.pid}))
+    kill_run_processes(tmp_path, "another-run")
+    assert proc.poll() is None
+    kill_run_processes(tmp_path, run_id)
+    assert proc.wait(timeout=60) == -signal.SIGKILL
 
 
 def test_a_childs_zenoh_session_works(factory, hub, tmp_path):

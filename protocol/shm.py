@@ -22,6 +22,7 @@ ahead of a reader that has not copied its payload yet.
 from __future__ import annotations
 
 import contextlib
+import logging
 import mmap
 import os
 import shutil
@@ -29,15 +30,18 @@ import struct
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
 from protocol import keys
-from protocol.codec import decode, encode
+from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import InShm
-from protocol.session import DropCounter
+from protocol.session import DropCounter, typed_handler
 
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 HEADER = struct.Struct("<QQ")  # tick + 1 (0: being written, or never), payload size in bytes
 TMPFS = Path("/dev/shm")
 DIR_PREFIX = "autocast-"
@@ -113,22 +117,33 @@ class ShmReader:
         self.directory, self.key = Path(directory), key
         self._maps: list[mmap.mmap | None] = [None, None]
 
-    def read(self, notice: InShm) -> bytes:
-        """The payload of ``notice.tick``, copied out; ``ShmMiss`` if it is not there whole."""
+    def read(self, notice: InShm, convert: Callable[[memoryview], T] = bytes) -> T:
+        """``convert`` of the payload of ``notice.tick``, read in place (by default a
+        copy of its bytes); ``ShmMiss`` if it is not there whole. ``convert`` must keep
+        nothing of the view it is given (``protocol.codec.decode`` keeps nothing of its
+        input: msgpack copies what it reads), and is not called on a payload that is not
+        there; one overwritten while it ran is a miss whatever it returned or raised."""
         if notice.tick < 0:
             raise ShmMiss(f"tick {notice.tick}")
         need = HEADER.size + notice.nbytes
         mm = self._map(notice.tick, need)
         if (notice.tick + 1, notice.nbytes) != HEADER.unpack_from(mm, 0):
             raise ShmMiss(f"tick {notice.tick} ({notice.nbytes} bytes) is not in {self.key}'s shared memory")
-        payload = self._copy(mm, need)
+        base = memoryview(mm)
+        try:
+            with base[HEADER.size:need] as view:
+                out = convert(view)
+        except ValueError:
+            self._still_there(mm, notice)
+            raise
+        finally:
+            base.release()
+        self._still_there(mm, notice)
+        return out
+
+    def _still_there(self, mm: mmap.mmap, notice: InShm) -> None:
         if HEADER.unpack_from(mm, 0)[0] != notice.tick + 1:
             raise ShmMiss(f"tick {notice.tick} of {self.key} was overwritten while read")
-        return payload
-
-    @staticmethod
-    def _copy(mm: mmap.mmap, need: int) -> bytes:
-        return mm[HEADER.size:need]
 
     def _map(self, tick: int, need: int) -> mmap.mmap:
         i = tick % 2
@@ -187,48 +202,36 @@ class ShmPublisher:
             self._writer.close()
 
 
-def subscribe(session: zenoh.Session, key: str, directory: Path | str | None,
-              handler: Callable[[Any], None], drops: DropCounter) -> Any:
-    """Subscribe ``handler`` (a ``protocol.session.typed_handler``) to ``key``'s payloads:
-    over Zenoh, or with a directory through shared memory, subscribed to the twin key
-    only (a subscriber on ``key`` itself would make the writer send it over Zenoh too).
-    A notice that is malformed or names no payload in shared memory is dropped and
-    counted in ``drops`` on the twin key; a payload read is handed to ``handler`` as if
-    Zenoh had carried it on ``key``."""
+def subscribe(session: zenoh.Session, key: str, directory: Path | str | None, expected: type,
+              on_msg: Callable[[str, Any], None], drops: DropCounter) -> Any:
+    """Subscribe to ``key``'s messages of type ``expected``, as
+    ``protocol.session.typed_handler`` does: over Zenoh, or with a directory through
+    shared memory, subscribed to the twin key only (a subscriber on ``key`` itself
+    would make the writer send it over Zenoh too), and decoded in place. A notice that
+    is malformed or names no payload in shared memory is dropped and counted in
+    ``drops`` on the twin key, a malformed payload on ``key``."""
     if not directory:
-        return session.declare_subscriber(key, handler)
+        return session.declare_subscriber(key, typed_handler(expected, on_msg, drops))
     reader = ShmReader(directory, key)
     twin = keys.in_shm(key)
 
     def on_notice(sample: zenoh.Sample) -> None:
+        notice = None
         try:
-            payload = reader.read(decode(sample.payload.to_bytes(), InShm))
-        except ValueError as err:  # MalformedMessage, ShmMiss
+            notice = decode(sample.payload.to_bytes(), InShm)
+            msg = reader.read(notice, lambda view: decode(view, expected))
+        except ShmMiss as err:
             drops.add(twin, err)
             return
-        handler(Payload(key, payload))
+        except MalformedMessage as err:
+            drops.add(twin if notice is None else key, err)
+            return
+        try:
+            on_msg(key, msg)
+        except Exception:
+            log.exception("handler for %s failed", key)
 
     return _Subscription(session.declare_subscriber(twin, on_notice), reader)
-
-
-class Payload:
-    """What ``typed_handler`` reads of a ``zenoh.Sample``: a payload out of shared memory."""
-
-    __slots__ = ("key_expr", "payload")
-
-    def __init__(self, key: str, data: bytes) -> None:
-        self.key_expr = key
-        self.payload = _Bytes(data)
-
-
-class _Bytes:
-    __slots__ = ("data",)
-
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def to_bytes(self) -> bytes:
-        return self.data
 
 
 class _Subscription:

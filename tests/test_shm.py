@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from protocol import keys, shm
-from protocol.codec import encode
+from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import InShm, Tick
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
 from protocol.shm import ShmMiss, ShmPublisher, ShmReader, ShmWriter
@@ -46,16 +46,28 @@ def test_a_payload_overwritten_while_it_is_copied_is_a_miss(tmp_path):
     writer = ShmWriter(tmp_path, KEY)
     notice = writer.write(0, 0.0, _payload(0, 1000))
 
-    class Racing(ShmReader):
-        """A writer two ticks ahead takes the file while the reader copies."""
-
-        def _copy(self, mm, need):
-            copied = super()._copy(mm, need)
-            writer.write(2, 0.2, _payload(2, 1000))
-            return copied
+    def meanwhile(view):  # a writer two ticks ahead takes the file while the reader decodes
+        copied = bytes(view)
+        writer.write(2, 0.2, _payload(2, 1000))
+        return copied
 
     with pytest.raises(ShmMiss, match="overwritten while read"):
-        Racing(tmp_path, KEY).read(notice)
+        ShmReader(tmp_path, KEY).read(notice, meanwhile)
+
+
+def test_a_payload_that_fails_to_decode_because_it_was_overwritten_is_a_miss_not_malformed(tmp_path):
+    writer = ShmWriter(tmp_path, KEY)
+    notice = writer.write(0, 0.0, encode(Tick(0, 0.0, [1], [])))
+
+    def torn(view):
+        writer.write(2, 0.2, b"\xc1" * len(view))  # 0xc1 is never valid msgpack
+        return decode(view, Tick)
+
+    with pytest.raises(ShmMiss, match="overwritten while read"):
+        ShmReader(tmp_path, KEY).read(notice, torn)
+    notice = writer.write(4, 0.4, b"\xc1" * 8)
+    with pytest.raises(MalformedMessage):  # there, whole, and not a message
+        ShmReader(tmp_path, KEY).read(notice, lambda view: decode(view, Tick))
 
 
 def test_notices_that_name_nothing_there_are_misses(tmp_path):
@@ -141,7 +153,7 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
     key = keys.world_tick("t")
     pub = ShmPublisher(a, key, tmp_path)
     drops, inbox, plain = DropCounter(), Inbox(), Inbox()
-    sub = shm.subscribe(b, key, tmp_path, typed_handler(Tick, inbox.put, drops), drops)
+    sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops)
     _wait_matching(pub._notice, True)
     assert not pub._pub.matching_status.matching  # the shared-memory reader does not listen on the key itself
     ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(3)]
@@ -157,9 +169,10 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
     twin = keys.in_shm(key)
     for bad in (b"\x00garbage", encode(ticks[0]), encode(InShm(7, 0.7, 10))):
         a.put(twin, bad)
+    a.put(twin, encode(pub._writer.write(9, 0.9, b"\xc1not a tick")))  # a notice of a payload that is garbage
     pub.put(2, 0.2, encode(ticks[2]))  # after the bad ones, on the same link: it arrives last
     assert inbox.wait_for(3)[2] == (key, ticks[2])
-    assert drops.by_key() == {twin: 3}
+    assert drops.by_key() == {twin: 3, key: 1}
     zsub.undeclare()
     sub.undeclare()
     pub.undeclare()
@@ -171,7 +184,7 @@ def test_without_a_directory_the_publisher_is_plain_zenoh(sessions):
     key = keys.world_tick("t")
     pub = ShmPublisher(a, key, None)
     drops, inbox = DropCounter(), Inbox()
-    sub = shm.subscribe(b, key, None, typed_handler(Tick, inbox.put, drops), drops)
+    sub = shm.subscribe(b, key, None, Tick, inbox.put, drops)
     _wait_matching(pub._pub, True)
     pub.put(0, 0.0, encode(Tick(0, 0.0, [1], [])))
     assert inbox.wait_for(1) == [(key, Tick(0, 0.0, [1], []))]

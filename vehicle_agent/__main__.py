@@ -141,8 +141,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if args.scheme != "lane":
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
-        shm.subscribe(session, keys.scan(run, vid), args.shm_dir,
-                      typed_handler(Scan, lambda k, m: scans.put(m), drops), drops),
+        shm.subscribe(session, keys.scan(run, vid), args.shm_dir, Scan, lambda k, m: scans.put(m), drops),
         session.declare_subscriber(keys.world_outcome(run),
                                    typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
     ]

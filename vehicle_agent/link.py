@@ -16,6 +16,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -73,12 +74,12 @@ class V2VLink:
         self.missed_bundles = 0
         self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
         self._subs = [
-            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, _into(self._ctrl, CtrlBundle, drops), drops),
-            session.declare_subscriber(keys.net_emp_down(run, vid), _into(self._emp, EmpBundle, drops)),
+            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, CtrlBundle, _into(self._ctrl), drops),
+            session.declare_subscriber(keys.net_emp_down(run, vid), typed_handler(EmpBundle, _into(self._emp), drops)),
         ]
         if receives_data:
-            self._subs.append(shm.subscribe(session, keys.net_data_rx(run), shm_dir,
-                                            _into(self._data, DataBundle, drops), drops))
+            self._subs.append(shm.subscribe(session, keys.net_data_rx(run), shm_dir, DataBundle, _into(self._data),
+                                            drops))
         self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
         self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
         self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))
@@ -157,5 +158,5 @@ def received_in(bundle: DataBundle | None, vid: int) -> list[Reception] | None:
     return bundle.received_by(vid) if bundle is not None else None
 
 
-def _into(box: _Mailbox, cls: type, drops: DropCounter) -> Callable:
-    return typed_handler(cls, lambda key, msg: box.put(msg.tick, msg), drops)
+def _into(box: _Mailbox) -> Callable[[str, Any], None]:
+    return lambda key, msg: box.put(msg.tick, msg)

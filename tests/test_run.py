@@ -185,6 +185,24 @@ def test_the_mcap_holds_every_topic(scenario_runs):
     assert meta["autocast"]["git_revision"]
 
 
+def test_a_one_host_run_moves_scans_and_bundles_through_shared_memory_and_leaves_none(launches):
+    """Every scan and both bundles go through the run's shared memory (protocol.shm):
+    with ``--scans all`` the recorder listens on every key, so each payload also goes
+    over Zenoh and each notice is recorded beside it; every notice was read (nothing
+    dropped anywhere), and the run's directory is gone once the launcher exited."""
+    launch = launches("shm", "--scenario", "left_turn", "--vehicles", "4", "--scheme", "autocast", "--duration", "1.5",
+                      "--scans", "all")
+    assert launch.finish() in (0, 1), launch.stderr
+    run, r = launch.run_id, launch.result
+    with open(launch.run_dir / "run.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    counts = {ch.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, ch in summary.channels.items()}
+    for key in [keys.scan(run, v) for v in range(4)] + [keys.net_ctrl_rx(run), keys.net_data_rx(run)]:
+        assert counts[key] == counts[keys.in_shm(key)] == r["ticks"], key
+    assert all(m["total"] == 0 for m in r["malformed"].values()), r["malformed"]
+    assert not list(Path("/dev/shm").glob(f"autocast-{launch.proc.pid}-{run}-*"))
+
+
 def test_a_killed_agent_still_ends_in_a_judged_outcome(launches):
     """Agent 2 is SIGKILLed at tick 10: the world marks it dead (its liveliness token
     drops), its vehicle brakes, and the run plays out to a judged outcome."""

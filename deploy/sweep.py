@@ -285,7 +285,7 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 # seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
 # autocast's. How they were measured: docs/experiments.md.
 MODEL_STARTUP_S = {5: 0.5, 10: 0.6, 20: 0.9, 40: 1.8}
-MODEL_TICK_S = {5: 0.0332, 10: 0.0530, 20: 0.0935, 40: 0.2146}
+MODEL_TICK_S = {5: 0.0332, 10: 0.0530, 20: 0.0682, 40: 0.1582}
 # A scheme's tick as a multiple of autocast's, by connected vehicles (the median ratio,
 # scheme over autocast, in the same scenario; docs/experiments.md); agnostic: 1.
 MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {

@@ -1,7 +1,8 @@
 """A hostile peer: ``python -m deploy.hostile --run-id R --connect HUB --vids 0 1 2``.
 
 Joins a run's hub and, once the run is live, publishes on every data key the run uses
-(every ``protocol.keys`` key but the liveliness tokens, for each given vehicle) a
+(every ``protocol.keys`` key but the liveliness tokens, for each given vehicle, and the
+twins that carry the shared-memory notices of a one-host run) a
 known number of payloads that no subscriber of that key may accept: generated and
 mutated garbage (``bench/fuzz.py``'s generators, seeded by key) and well-formed
 messages of another type. Nothing it sends is a valid message of the key's own type:
@@ -68,8 +69,8 @@ from deploy.recorder import peek_envelope
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
-                               EmpBundle, EmpUpload, MapMsg, Mission, ObjectMap, Outcome, Pose, Rejected, Scan,
-                               Signed, Tick, Transmission, WorldTruth)
+                               EmpBundle, EmpUpload, InShm, MapMsg, Mission, ObjectMap, Outcome, Pose, Rejected,
+                               Scan, Signed, Tick, Transmission, WorldTruth)
 from protocol.security import Authority, Credentials, Signer, Verifier
 from protocol.session import add_zenoh_args, session_scope, zenoh_args_from
 from vehicle_agent.payload import ObjectPayload, encode_object, header_of
@@ -84,6 +85,9 @@ KEY_TYPES: dict[Callable[..., str], type] = {
     keys.net_data_rx: DataBundle, keys.net_stats: ChannelStats, keys.net_emp_up: EmpUpload,
     keys.net_emp_down: EmpBundle, keys.rejected: Rejected,
 }
+# the keys whose payloads a one-host run puts in shared memory (protocol.shm): the
+# notices on their twins (keys.in_shm) are data keys too
+SHM_KEYS = (keys.scan, keys.net_ctrl_rx, keys.net_data_rx)
 # liveliness tokens and the run's wildcard
 NOT_DATA = (keys.alive, keys.proxy_alive, keys.participant_alive, keys.alive_any, keys.everything)
 MAX_PAYLOAD_BYTES = 4096  # garbage, not load: keep the hub's work small
@@ -98,15 +102,16 @@ def key_functions() -> list[Callable[..., str]]:
 
 
 def data_keys(run: str, vids: list[int]) -> dict[str, type]:
-    """``{key: message type}`` for every data key of a run with vehicles ``vids``."""
+    """``{key: message type}`` for every data key of a run with vehicles ``vids``, the
+    shared-memory notices' twin keys included."""
     out: dict[str, type] = {}
     for fn in key_functions():
         if fn in NOT_DATA:
             continue
-        if len(inspect.signature(fn).parameters) == 1:
-            out[fn(run)] = KEY_TYPES[fn]
-        else:
-            out.update({fn(run, vid): KEY_TYPES[fn] for vid in vids})
+        built = [fn(run)] if len(inspect.signature(fn).parameters) == 1 else [fn(run, vid) for vid in vids]
+        out.update({key: KEY_TYPES[fn] for key in built})
+        if fn in SHM_KEYS:
+            out.update({keys.in_shm(key): InShm for key in built})
     return out
 
 

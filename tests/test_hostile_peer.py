@@ -32,7 +32,7 @@ from deploy.hostile import KEY_TYPES, NOT_DATA, key_functions
 from deploy.procs import ProcSpec
 from deploy.recorder import EGO_VID, McapLog, subscriptions
 from deploy.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare, warm_numba_caches
-from protocol import keys
+from protocol import keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ChannelStats, CtrlBundle, DataBundle, Outcome, Rejected, Tick
 from protocol.session import DropCounter, ZenohArgs, query_one, session_scope
@@ -55,7 +55,9 @@ def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, in
     opts = replace(opts, run=prepare(opts.run))
     with ExitStack() as stack:
         session, endpoint = open_hub(stack, opts.run.run_dir)
-        cfg = replace(opts.run, hub=endpoint, wait_for=("hostile",) if hostile else ())
+        shm_dir = stack.enter_context(shm.run_directory(run_id))  # as autocast run: scans and bundles through it
+        assert shm_dir is not None, "no /dev/shm"
+        cfg = replace(opts.run, hub=endpoint, wait_for=("hostile",) if hostile else (), shm_dir=str(shm_dir))
         specs = table.processes(cfg)
         if hostile:
             vids = [str(v) for v in table.connected_vids(cfg.params)]
@@ -145,14 +147,14 @@ def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(runs):
     # the precondition of exactness: every payload was routed before the run's last tick
     assert peer["confirmed_before_tick"] is not None and peer["confirmed_before_tick"] < result["ticks"], peer
     vids, takes_data = _vehicles()
-    data_rx = {v: [keys.net_data_rx(run)] if v in takes_data else [] for v in vids}
+    data_rx = {v: [keys.in_shm(keys.net_data_rx(run))] if v in takes_data else [] for v in vids}
     assert [] in data_rx.values() and any(data_rx.values()), "the run has no vehicle of one kind"
     listens = {  # which keys each process subscribes to (and decodes as their type)
         "world": [keys.cmd(run, v) for v in vids] + [keys.report(run, EGO_VID)],
         "proxy": [keys.world_tick(run), keys.world_outcome(run)] + [k for v in vids for k in (
             keys.net_ctrl_tx(run, v), keys.net_data_tx(run, v))],
-        **{f"agent{v}": [keys.scan(run, v), keys.world_outcome(run), keys.net_ctrl_rx(run), *data_rx[v],
-                         keys.net_emp_down(run, v)] for v in vids},
+        **{f"agent{v}": [keys.in_shm(keys.scan(run, v)), keys.world_outcome(run), keys.in_shm(keys.net_ctrl_rx(run)),
+                         *data_rx[v], keys.net_emp_down(run, v)] for v in vids},  # the notices, not the payloads' keys
     }
     assert set(result["malformed"]) == set(listens)
     signed = peer["signed_envelope"]  # a valid Signed envelope the world's verifier rejects: no certificate of ours

@@ -284,13 +284,13 @@ def check_scenarios(keys: Iterable[RunKey]) -> None:
 # teardown (its launcher and N + 3 processes forked from the sweep's warm factory) and
 # seconds per 100 ms lock-step tick; the other schemes' ticks cost a multiple of
 # autocast's. How they were measured: docs/experiments.md.
-MODEL_STARTUP_S = {5: 0.5, 10: 0.6, 20: 0.9, 40: 1.8}
+MODEL_STARTUP_S = {5: 0.5, 10: 0.6, 20: 0.75, 40: 2.15}
 MODEL_TICK_S = {5: 0.0332, 10: 0.0530, 20: 0.0682, 40: 0.1582}
 # A scheme's tick as a multiple of autocast's, by connected vehicles (the median ratio,
 # scheme over autocast, in the same scenario; docs/experiments.md); agnostic: 1.
 MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {
-    "single": {5: 0.58, 10: 0.6, 20: 0.45, 40: 0.36}, "lane": {5: 0.58, 40: 0.36},
-    "emp": {5: 1.04, 10: 1.24, 20: 1.06, 40: 0.96}}
+    "single": {5: 0.44, 10: 0.52, 20: 0.45, 40: 0.44}, "lane": {5: 0.58, 40: 0.36},
+    "emp": {5: 1.36, 10: 1.9, 20: 1.84, 40: 1.79}}
 # With --jobs > 1, runs whose vehicles fit the budget twice run two at once; a pair takes
 # less than the two runs alone (each leaves idle time in its lock-step phases): the
 # sweep's wall time per such run is its time alone over this gain.

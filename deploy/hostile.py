@@ -101,9 +101,10 @@ def key_functions() -> list[Callable[..., str]]:
             and list(inspect.signature(fn).parameters)[:1] == ["run"]]
 
 
-def data_keys(run: str, vids: list[int]) -> dict[str, type]:
-    """``{key: message type}`` for every data key of a run with vehicles ``vids``, the
-    shared-memory notices' twin keys included."""
+def data_keys(run: str, vids: list[int]) -> dict[str, type | tuple[type, ...]]:
+    """``{key: message type}`` for every data key of a run with vehicles ``vids``; a
+    shared-memory twin key's are ``InShm`` and its key's own type (a payload its writer
+    could not put in shared memory comes on the twin itself)."""
     out: dict[str, type] = {}
     for fn in key_functions():
         if fn in NOT_DATA:
@@ -111,20 +112,22 @@ def data_keys(run: str, vids: list[int]) -> dict[str, type]:
         built = [fn(run)] if len(inspect.signature(fn).parameters) == 1 else [fn(run, vid) for vid in vids]
         out.update({key: KEY_TYPES[fn] for key in built})
         if fn in SHM_KEYS:
-            out.update({keys.in_shm(key): InShm for key in built})
+            out.update({keys.in_shm(key): (InShm, KEY_TYPES[fn]) for key in built})
     return out
 
 
-def payloads_for(key: str, cls: type, garbage: int, wrong_typed: int, seed: int) -> list[bytes]:
-    """``garbage`` fuzzed payloads that ``cls`` refuses, then ``wrong_typed`` valid
-    messages of the other types in turn; a function of (seed, key) only."""
+def payloads_for(key: str, cls: type | tuple[type, ...], garbage: int, wrong_typed: int, seed: int) -> list[bytes]:
+    """``garbage`` fuzzed payloads that ``cls`` (each of its types) refuses, then
+    ``wrong_typed`` valid messages of the other types in turn; a function of (seed,
+    key) only."""
+    accepted = cls if isinstance(cls, tuple) else (cls,)
     rnd = random.Random(f"{seed}:{key}")
     out: list[bytes] = []
     while len(out) < garbage:
-        payload = fuzz.fuzz_input(cls.__name__, rnd)
-        if len(payload) <= MAX_PAYLOAD_BYTES and not _decodes_as(payload, cls):
+        payload = fuzz.fuzz_input(accepted[0].__name__, rnd)
+        if len(payload) <= MAX_PAYLOAD_BYTES and not any(_decodes_as(payload, c) for c in accepted):
             out.append(payload)
-    others = [c.__name__ for c in fuzz.MESSAGE_TYPES if c is not cls]
+    others = [c.__name__ for c in fuzz.MESSAGE_TYPES if c not in accepted]
     for i in range(wrong_typed):
         out.append(fuzz.valid_payload(others[i % len(others)], rnd))
     return out

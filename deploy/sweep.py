@@ -289,7 +289,7 @@ MODEL_TICK_S = {5: 0.0332, 10: 0.0530, 20: 0.0682, 40: 0.1582}
 # A scheme's tick as a multiple of autocast's, by connected vehicles (the median ratio,
 # scheme over autocast, in the same scenario; docs/experiments.md); agnostic: 1.
 MODEL_SCHEME_TICK: dict[str, dict[int, float]] = {
-    "single": {5: 0.44, 10: 0.52, 20: 0.45, 40: 0.44}, "lane": {5: 0.58, 40: 0.36},
+    "single": {5: 0.44, 10: 0.52, 20: 0.45, 40: 0.44}, "lane": {5: 0.58, 40: 0.36},  # lane: not refit (no preset runs it)
     "emp": {5: 1.36, 10: 1.9, 20: 1.84, 40: 1.79}}
 # With --jobs > 1, runs whose vehicles fit the budget twice run two at once; a pair takes
 # less than the two runs alone (each leaves idle time in its lock-step phases): the

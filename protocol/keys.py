@@ -133,10 +133,7 @@ def alive_any(run: str) -> str:
 def in_shm(key: str) -> str:
     """The twin of ``key`` that carries ``InShm`` notices when its payloads go through
     shared memory (``protocol.shm``)."""
-    return f"{key}/{SHM_TWIN}"
-
-
-SHM_TWIN = "shm"
+    return f"{key}/shm"
 
 
 def everything(run: str) -> str:

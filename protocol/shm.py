@@ -6,28 +6,32 @@ the hub copies them out to every subscriber, and each receiver's threads reassem
 and copy them again. With a shared-memory directory (``--shm-dir``, a per-run
 directory on tmpfs that ``autocast run`` makes), a writer puts the exact bytes it
 would have published into a file there and publishes only ``InShm`` (the tick and the
-size) on the key's twin, ``keys.in_shm(key)``; a reader copies the bytes out and
-decodes them as if Zenoh had carried them. What a receiver decodes, verifies and acts
-on is the same byte for byte; runs across hosts (and any process without the flag)
-use Zenoh as before.
+size) on the key's twin, ``keys.in_shm(key)``; a reader decodes the bytes in place as
+if Zenoh had carried them (a payload that cannot go into shared memory, the tmpfs
+being full, goes on the twin itself). What a receiver decodes, verifies and acts on
+is the same byte for byte; runs across hosts (and any process without the flag) use
+Zenoh as before.
 
 Each key has two files, ``<key with / as .>.0`` and ``.1``; tick k goes to file
 ``k % 2``: a 16-byte header (the tick plus one, 0 while it is being written; the
-payload's size) and then the payload. A reader checks the header before and after its
-copy, so a payload overwritten meanwhile (a reader two ticks late, in real-time mode)
-is dropped and counted, never half-read. In lock-step a writer is never two ticks
-ahead of a reader that has not copied its payload yet.
+payload's size) and then the payload. A reader checks the header before and after it
+decodes, so a payload overwritten meanwhile (a reader two ticks late, in real-time
+mode) is dropped and counted, never half-read: sound where stores and loads keep their
+order (x86; ``run_directory`` gives no directory elsewhere). In lock-step a writer is
+never two ticks ahead of a reader that has not decoded its payload yet.
 """
-
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import mmap
 import os
+import platform
 import shutil
 import struct
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
@@ -45,73 +49,87 @@ T = TypeVar("T")
 HEADER = struct.Struct("<QQ")  # tick + 1 (0: being written, or never), payload size in bytes
 TMPFS = Path("/dev/shm")
 DIR_PREFIX = "autocast-"
+LOCK_NAME = ".launcher"  # in a run's directory: its launcher holds an flock on it
+ORPHAN_AFTER_S = 60.0
+ORDERED_STORES = ("x86_64", "AMD64", "i386", "i686")  # CPUs that keep stores (and loads) in program order
 
 
 class ShmMiss(ValueError):
     """The payload a notice names is not (or no longer) in shared memory."""
 
 
-def _path(directory: Path, key: str, tick: int) -> Path:
-    return directory / f"{key.replace('/', '.')}.{tick % 2}"
+def _name(key: str, slot: int) -> str:
+    """The file of ``key``'s ticks ``k`` with ``k % 2 == slot``."""
+    return f"{key.replace('/', '.')}.{slot}"
 
 
 class ShmWriter:
     """Writes one key's payloads into its two files; ``write`` returns the notice to publish.
 
-    A file grows (``posix_fallocate``: a full tmpfs is ``OSError`` here, never a SIGBUS
-    later) when a payload does not fit; ``write`` returns None if it cannot, and the
-    caller publishes the payload over Zenoh instead."""
+    A file grows when a payload does not fit, its pages reserved first
+    (``posix_fallocate``: a full tmpfs fails there, never with a SIGBUS later); a
+    payload that does not fit a full tmpfs gets None from ``write``, and the next one
+    tries again. Files are created, never truncated (someone may have them mapped): if
+    another writer's are there already, every ``write`` returns None. The caller then
+    sends the payload itself on the twin key (``ShmPublisher``)."""
 
     def __init__(self, directory: Path | str, key: str) -> None:
         self.directory, self.key = Path(directory), key
-        self._maps: list[tuple[int, mmap.mmap] | None] = [None, None]
+        self._fds: list[int | None] = [None, None]  # our files
+        self._maps: list[mmap.mmap | None] = [None, None]
+        self._foreign = False  # another writer's files are there
+        self.fallbacks = 0  # payloads that did not go into shared memory
 
     def write(self, tick: int, t_sim_s: float, payload: bytes) -> InShm | None:
         need = HEADER.size + len(payload)
-        try:
-            fd, mm = self._slot(tick, need)
-        except OSError:
+        mm = self._room(tick % 2, need)
+        if mm is None:
+            self.fallbacks += 1
+            if self.fallbacks == 1:
+                log.warning("%s: a payload of %d bytes does not go through shared memory (%s); it goes over Zenoh",
+                            self.key, len(payload), "another writer's files" if self._foreign else "no room")
             return None
         HEADER.pack_into(mm, 0, 0, len(payload))
         mm[HEADER.size:need] = payload
         HEADER.pack_into(mm, 0, tick + 1, len(payload))
         return InShm(tick, t_sim_s, len(payload))
 
-    def _slot(self, tick: int, need: int) -> tuple[int, mmap.mmap]:
-        i = tick % 2
-        slot = self._maps[i]
-        if slot is not None and len(slot[1]) >= need:
-            return slot
-        if slot is None:  # never truncate a file someone may have mapped: a second writer gets Zenoh
-            fd = os.open(_path(self.directory, self.key, tick), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        else:
-            fd = slot[0]
-            slot[1].close()
-            self._maps[i] = None
+    def _room(self, i: int, need: int) -> mmap.mmap | None:
+        mm = self._maps[i]
+        if mm is not None and len(mm) >= need:
+            return mm
+        if self._foreign:
+            return None
         try:
+            if self._fds[i] is None:
+                self._fds[i] = os.open(self.directory / _name(self.key, i), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
             size = max(need + need // 4, mmap.PAGESIZE)  # room to grow a little without remapping
-            os.posix_fallocate(fd, 0, size)
-            mm = mmap.mmap(fd, size)
+            os.posix_fallocate(self._fds[i], 0, size)
+            grown = mmap.mmap(self._fds[i], size)
+        except FileExistsError:
+            self._foreign = True
+            return None
         except OSError:
-            os.close(fd)
-            raise
-        self._maps[i] = (fd, mm)
-        return fd, mm
+            return None
+        self._maps[i] = grown  # the smaller map, if any, is unmapped once nothing refers to it
+        return grown
 
     def close(self) -> None:
-        """Unmap and remove the files (readers that have them open keep their copies)."""
-        for i, slot in enumerate(self._maps):
-            if slot is not None:
-                slot[1].close()
-                os.close(slot[0])
-                self._maps[i] = None
-        for tick in (0, 1):
-            with contextlib.suppress(FileNotFoundError):
-                _path(self.directory, self.key, tick).unlink()
+        """Remove our files (a reader that has one mapped keeps it until it lets go)."""
+        self._maps = [None, None]
+        for i, fd in enumerate(self._fds):
+            if fd is not None:
+                os.close(fd)
+                with contextlib.suppress(FileNotFoundError):
+                    (self.directory / _name(self.key, i)).unlink()
+        self._fds = [None, None]
 
 
 class ShmReader:
-    """Reads one key's payloads named by its notices."""
+    """Reads one key's payloads named by its notices.
+
+    Maps are never closed, only dropped (unmapped once nothing refers to them): Zenoh
+    may still run a callback that reads one while its subscriber is undeclared."""
 
     def __init__(self, directory: Path | str, key: str) -> None:
         self.directory, self.key = Path(directory), key
@@ -126,14 +144,14 @@ class ShmReader:
         if notice.tick < 0:
             raise ShmMiss(f"tick {notice.tick}")
         need = HEADER.size + notice.nbytes
-        mm = self._map(notice.tick, need)
+        mm = self._map(notice.tick % 2, need)
         if (notice.tick + 1, notice.nbytes) != HEADER.unpack_from(mm, 0):
             raise ShmMiss(f"tick {notice.tick} ({notice.nbytes} bytes) is not in {self.key}'s shared memory")
         base = memoryview(mm)
         try:
             with base[HEADER.size:need] as view:
                 out = convert(view)
-        except ValueError:
+        except Exception:
             self._still_there(mm, notice)
             raise
         finally:
@@ -145,16 +163,12 @@ class ShmReader:
         if HEADER.unpack_from(mm, 0)[0] != notice.tick + 1:
             raise ShmMiss(f"tick {notice.tick} of {self.key} was overwritten while read")
 
-    def _map(self, tick: int, need: int) -> mmap.mmap:
-        i = tick % 2
+    def _map(self, i: int, need: int) -> mmap.mmap:
         mm = self._maps[i]
         if mm is not None and len(mm) >= need:
             return mm
-        if mm is not None:  # the writer grew the file
-            mm.close()
-            self._maps[i] = None
-        try:
-            fd = os.open(_path(self.directory, self.key, tick), os.O_RDONLY)
+        try:  # first use, or the writer grew the file
+            fd = os.open(self.directory / _name(self.key, i), os.O_RDONLY)
         except OSError as exc:
             raise ShmMiss(f"no shared memory for {self.key}: {exc.strerror}") from None
         try:
@@ -162,43 +176,44 @@ class ShmReader:
             if size < need:
                 raise ShmMiss(f"{self.key}'s shared memory holds {size} bytes, the notice names {need}")
             mm = mmap.mmap(fd, size, prot=mmap.PROT_READ)
+        except OSError as exc:
+            raise ShmMiss(f"{self.key}'s shared memory: {exc.strerror}") from None
         finally:
             os.close(fd)
         self._maps[i] = mm
         return mm
 
     def close(self) -> None:
-        for i, mm in enumerate(self._maps):
-            if mm is not None:
-                mm.close()
-                self._maps[i] = None
+        self._maps = [None, None]
 
 
 class ShmPublisher:
-    """A big publisher for one key: with a directory, each payload goes into shared
-    memory and its notice on the twin key, and over Zenoh too only while some
-    subscriber listens on the key itself (a recorder keeping it, a user's logger:
-    Zenoh's matching status says so); without one, over Zenoh only, as
-    ``protocol.session.reliable_publisher``."""
+    """A big publisher for one key. With a directory, each payload goes into shared
+    memory and its ``InShm`` notice on the twin key (a payload that cannot goes on the
+    twin itself: the readers listen there only), and on the key itself only while some
+    subscriber listens there (a recorder keeping it, a user's logger: Zenoh's matching
+    status says so). Without one, on the key, as ``protocol.session.reliable_publisher``."""
 
     def __init__(self, session: zenoh.Session, key: str, directory: Path | str | None) -> None:
         block = zenoh.CongestionControl.BLOCK
         self.key = key
         self._pub = session.declare_publisher(key, congestion_control=block)
         self._writer = ShmWriter(directory, key) if directory else None
-        self._notice = session.declare_publisher(keys.in_shm(key), congestion_control=block) if directory else None
+        self._twin = session.declare_publisher(keys.in_shm(key), congestion_control=block) if directory else None
 
     def put(self, tick: int, t_sim_s: float, payload: bytes) -> None:
-        notice = self._writer.write(tick, t_sim_s, payload) if self._writer is not None else None
-        if notice is None or self._pub.matching_status.matching:
+        if self._writer is None:
             self._pub.put(payload)
-        if notice is not None:
-            self._notice.put(encode(notice))
+            return
+        notice = self._writer.write(tick, t_sim_s, payload)
+        self._twin.put(payload if notice is None else encode(notice))
+        if self._pub.matching_status.matching:
+            self._pub.put(payload)
 
     def undeclare(self) -> None:
         self._pub.undeclare()
-        if self._notice is not None:
-            self._notice.undeclare()
+        if self._writer is not None:
+            self._twin.undeclare()
             self._writer.close()
 
 
@@ -207,25 +222,35 @@ def subscribe(session: zenoh.Session, key: str, directory: Path | str | None, ex
     """Subscribe to ``key``'s messages of type ``expected``, as
     ``protocol.session.typed_handler`` does: over Zenoh, or with a directory through
     shared memory, subscribed to the twin key only (a subscriber on ``key`` itself
-    would make the writer send it over Zenoh too), and decoded in place. A notice that
-    is malformed or names no payload in shared memory is dropped and counted in
-    ``drops`` on the twin key, a malformed payload on ``key``."""
+    would make the writer send it over Zenoh too), each ``InShm`` notice's payload
+    decoded in place, and a payload the writer could not put there taken as it comes
+    on the twin. What is neither, and a notice that names no payload in shared memory,
+    is dropped and counted in ``drops`` on the twin key; a malformed payload in shared
+    memory on ``key``."""
     if not directory:
         return session.declare_subscriber(key, typed_handler(expected, on_msg, drops))
     reader = ShmReader(directory, key)
     twin = keys.in_shm(key)
 
     def on_notice(sample: zenoh.Sample) -> None:
-        notice = None
+        raw = sample.payload.to_bytes()
         try:
-            notice = decode(sample.payload.to_bytes(), InShm)
-            msg = reader.read(notice, lambda view: decode(view, expected))
-        except ShmMiss as err:
-            drops.add(twin, err)
-            return
-        except MalformedMessage as err:
-            drops.add(twin if notice is None else key, err)
-            return
+            notice = decode(raw, InShm)
+        except MalformedMessage as not_a_notice:
+            try:
+                msg = decode(raw, expected)
+            except MalformedMessage:
+                drops.add(twin, not_a_notice)
+                return
+        else:
+            try:
+                msg = reader.read(notice, lambda view: decode(view, expected))
+            except ShmMiss as err:
+                drops.add(twin, err)
+                return
+            except MalformedMessage as err:
+                drops.add(key, err)
+                return
         try:
             on_msg(key, msg)
         except Exception:
@@ -245,39 +270,48 @@ class _Subscription:
 
 @contextlib.contextmanager
 def run_directory(run_id: str, parent: Path = TMPFS) -> Iterator[Path | None]:
-    """A fresh directory for one run's shared memory, removed on exit; None where there
-    is no tmpfs (the run then goes over Zenoh only). Directories left by launchers
-    that died (named after their pid) are removed first."""
-    if not (parent.is_dir() and os.access(parent, os.W_OK)):
+    """A fresh directory for one run's shared memory, removed on exit, its lock held
+    meanwhile; None where there is no tmpfs, or on a CPU that may reorder stores (the
+    readers' header check relies on x86's order): the run then goes over Zenoh only.
+    Directories whose launcher is gone are removed first (``remove_orphans``)."""
+    if platform.machine() not in ORDERED_STORES or not (parent.is_dir() and os.access(parent, os.W_OK)):
         yield None
         return
     remove_orphans(parent)
     path = Path(tempfile.mkdtemp(prefix=f"{DIR_PREFIX}{os.getpid()}-{run_id}-", dir=parent))
+    lock = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o600)
     try:
+        fcntl.flock(lock, fcntl.LOCK_EX)
         yield path
     finally:
         shutil.rmtree(path, ignore_errors=True)
+        os.close(lock)
 
 
 def remove_orphans(parent: Path = TMPFS) -> list[Path]:
-    """Remove the run directories whose launcher (the pid in the name) is gone."""
+    """Remove the run directories whose launcher is gone: nobody holds their lock. A
+    launcher holds it while its run lasts, in whatever pid namespace it runs, and lets
+    go with its last file descriptor however it ends. A directory changed in the last
+    ``ORPHAN_AFTER_S`` is left alone (a launcher takes its lock just after making it)."""
     gone = []
-    for path in parent.glob(f"{DIR_PREFIX}*-*"):
-        pid = path.name[len(DIR_PREFIX):].split("-", 1)[0]
-        if pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(path, ignore_errors=True)
-            gone.append(path)
+    for path in parent.glob(f"{DIR_PREFIX}*"):
+        try:
+            if time.time() - path.stat().st_mtime < ORPHAN_AFTER_S:
+                continue
+            fd = os.open(path / LOCK_NAME, os.O_RDONLY)
+        except FileNotFoundError:  # no lock: not a run's directory of ours
+            continue
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            continue  # its launcher runs
+        finally:
+            os.close(fd)
+        shutil.rmtree(path, ignore_errors=True)
+        gone.append(path)
     return gone
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def add_shm_arg(parser) -> None:

@@ -47,15 +47,16 @@ LATE_S = "2.0"  # the peer's injected delay past the moment a world that did not
 INSIDER, VICTIM = 1, 0  # the compromised vehicle (the occluder truck: it sends objects), the one it claims to be (the ego)
 
 
-def _run(out: Path, run_id: str, hostile: bool) -> tuple[RunResult, dict[str, int | None]]:
-    """One run as ``autocast run`` makes it, optionally with the hostile peer as one
-    more process on its hub; returns the result and every process's exit code."""
+def _run(out: Path, run_id: str, hostile: bool, via_shm: bool = True) -> tuple[RunResult, dict[str, int | None]]:
+    """One run as ``autocast run`` makes it (``via_shm`` False: every payload over Zenoh,
+    as across hosts), optionally with the hostile peer as one more process on its hub;
+    returns the result and every process's exit code."""
     opts = options_from(parse_args(["--out", str(out), "--run-id", run_id, *FLAGS]), hub="")
     opts.run.log_dir.mkdir(parents=True)
     opts = replace(opts, run=prepare(opts.run))
     with ExitStack() as stack:
         session, endpoint = open_hub(stack, opts.run.run_dir)
-        shm_dir = stack.enter_context(shm.run_directory(run_id))  # as autocast run: scans and bundles through it
+        shm_dir = stack.enter_context(shm.run_directory(run_id)) if via_shm else ""  # as autocast run
         assert shm_dir is not None, "no /dev/shm"
         cfg = replace(opts.run, hub=endpoint, wait_for=("hostile",) if hostile else (), shm_dir=str(shm_dir))
         specs = table.processes(cfg)
@@ -83,6 +84,12 @@ def runs(tmp_path_factory):
     with ThreadPoolExecutor(2) as pool:
         calm, hostile = pool.submit(_run, out, "calm", False), pool.submit(_run, out, "hostile", True)
         return calm.result(timeout=300), hostile.result(timeout=300)
+
+
+@pytest.fixture(scope="module")
+def zenoh_run(tmp_path_factory):
+    """The hostile run once more with every payload over Zenoh, as across hosts."""
+    return _run(tmp_path_factory.mktemp("hostile-zenoh"), "hostile-zenoh", True, via_shm=False)
 
 
 def _vehicles() -> tuple[list[int], set[int]]:
@@ -138,23 +145,26 @@ def test_the_world_waited_for_the_late_peer(runs):
     assert sum(n for per in peer["forged"].values() for n in per.values()) > 0
 
 
-def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(runs):
-    _, (hostile, _) = runs
-    run, result = "hostile", hostile.result
+@pytest.mark.parametrize("via_shm", [True, False], ids=["shared-memory", "zenoh"])
+def test_every_process_counted_exactly_what_the_peer_sent_on_its_keys(via_shm, request):
+    hostile, _ = request.getfixturevalue("runs")[1] if via_shm else request.getfixturevalue("zenoh_run")
+    result = hostile.result
+    run = result["run_id"]
     peer = _peer_report(Path(result["run_dir"]))
     sent = peer["sent"]
     assert sum(sent.values()) >= 3000
     # the precondition of exactness: every payload was routed before the run's last tick
     assert peer["confirmed_before_tick"] is not None and peer["confirmed_before_tick"] < result["ticks"], peer
     vids, takes_data = _vehicles()
-    data_rx = {v: [keys.in_shm(keys.net_data_rx(run))] if v in takes_data else [] for v in vids}
+    into = keys.in_shm if via_shm else (lambda key: key)  # with shared memory an agent takes the notices only
+    data_rx = {v: [into(keys.net_data_rx(run))] if v in takes_data else [] for v in vids}
     assert [] in data_rx.values() and any(data_rx.values()), "the run has no vehicle of one kind"
     listens = {  # which keys each process subscribes to (and decodes as their type)
         "world": [keys.cmd(run, v) for v in vids] + [keys.report(run, EGO_VID)],
         "proxy": [keys.world_tick(run), keys.world_outcome(run)] + [k for v in vids for k in (
             keys.net_ctrl_tx(run, v), keys.net_data_tx(run, v))],
-        **{f"agent{v}": [keys.in_shm(keys.scan(run, v)), keys.world_outcome(run), keys.in_shm(keys.net_ctrl_rx(run)),
-                         *data_rx[v], keys.net_emp_down(run, v)] for v in vids},  # the notices, not the payloads' keys
+        **{f"agent{v}": [into(keys.scan(run, v)), keys.world_outcome(run), into(keys.net_ctrl_rx(run)),
+                         *data_rx[v], keys.net_emp_down(run, v)] for v in vids},
     }
     assert set(result["malformed"]) == set(listens)
     signed = peer["signed_envelope"]  # a valid Signed envelope the world's verifier rejects: no certificate of ours

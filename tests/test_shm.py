@@ -3,15 +3,18 @@ exactly what the writer put, or a counted miss, never half of one."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import threading
+import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from protocol import keys, shm
 from protocol.codec import MalformedMessage, decode, encode
-from protocol.messages import InShm, Tick
+from protocol.messages import Command, InShm, Tick
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
 from protocol.shm import ShmMiss, ShmPublisher, ShmReader, ShmWriter
 from deploy.run import free_endpoint
@@ -81,35 +84,65 @@ def test_notices_that_name_nothing_there_are_misses(tmp_path):
     assert reader.read(InShm(0, 0.0, 10)) == _payload(0, 10)
 
 
-def test_a_second_writer_of_a_key_never_truncates_the_first_ones_files(tmp_path):
+def test_a_second_writer_of_a_key_never_truncates_nor_removes_the_first_ones_files(tmp_path):
     first, second = ShmWriter(tmp_path, KEY), ShmWriter(tmp_path, KEY)
     notice = first.write(0, 0.0, _payload(0, 4096))
-    assert second.write(0, 0.0, b"x") is None  # it publishes over Zenoh instead
+    assert second.write(0, 0.0, b"x") is None and second.write(1, 0.1, b"x") is None  # it sends them itself
+    second.close()
     assert ShmReader(tmp_path, KEY).read(notice) == _payload(0, 4096)
 
 
-def test_a_full_tmpfs_makes_the_writer_fall_back_to_zenoh(tmp_path, monkeypatch):
+def test_a_full_tmpfs_makes_a_payload_go_another_way_and_the_next_one_tries_again(tmp_path, monkeypatch):
+    fallocate = os.posix_fallocate
+
     def full(fd, offset, length):
         raise OSError(28, "No space left on device")
 
+    writer, reader = ShmWriter(tmp_path, KEY), ShmReader(tmp_path, KEY)
     monkeypatch.setattr(os, "posix_fallocate", full)
-    writer = ShmWriter(tmp_path, KEY)
     assert writer.write(0, 0.0, b"payload") is None
-    assert writer.write(1, 0.0, b"payload") is None
+    monkeypatch.setattr(os, "posix_fallocate", fallocate)
+    assert reader.read(writer.write(2, 0.2, b"payload")) == b"payload"  # the same file, now with room
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    assert writer.write(4, 0.4, b"x" * 10_000) is None  # it cannot grow: the payload goes another way
+    assert writer.write(6, 0.6, b"small") is not None  # what fits still goes in
+    assert writer.fallbacks == 2
     writer.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def _aged(path: Path) -> Path:
+    old = time.time() - 2 * shm.ORPHAN_AFTER_S
+    os.utime(path, (old, old))
+    return path
 
 
 def test_run_directory_is_removed_after_the_run_and_orphans_before_the_next(tmp_path):
-    orphan = tmp_path / f"{shm.DIR_PREFIX}999999999-old-abcd"  # no such pid
-    orphan.mkdir()
-    (orphan / "x.0").write_bytes(b"x")
-    ours = tmp_path / f"{shm.DIR_PREFIX}{os.getpid()}-other-abcd"
-    ours.mkdir()
-    with shm.run_directory("r1", parent=tmp_path) as path:
-        assert path.is_dir() and path.name.startswith(f"{shm.DIR_PREFIX}{os.getpid()}-r1-")
-        assert not orphan.exists() and ours.exists()
-        (path / "f").write_bytes(b"y")
-    assert not path.exists()
+    def run_dir(name: str) -> Path:
+        path = tmp_path / f"{shm.DIR_PREFIX}1-{name}-abcd"
+        path.mkdir()
+        (path / shm.LOCK_NAME).touch()
+        (path / "x.0").write_bytes(b"x")
+        return path
+
+    orphan = _aged(run_dir("old"))  # nobody holds its lock
+    young = run_dir("young")  # just made: its launcher takes the lock right after
+    alive = _aged(run_dir("alive"))
+    held = os.open(alive / shm.LOCK_NAME, os.O_RDONLY)  # its launcher, in another pid namespace, say
+    fcntl.flock(held, fcntl.LOCK_EX)
+    stranger = tmp_path / f"{shm.DIR_PREFIX}somebody-else"  # no lock file: not a run's
+    stranger.mkdir()
+    _aged(stranger)
+    try:
+        with shm.run_directory("r1", parent=tmp_path) as path:
+            assert path.is_dir() and path.name.startswith(f"{shm.DIR_PREFIX}{os.getpid()}-r1-")
+            assert not orphan.exists() and young.exists() and alive.exists() and stranger.exists()
+            _aged(path)
+            assert shm.remove_orphans(tmp_path) == []  # ours is held while the run lasts
+        assert not path.exists()
+    finally:
+        os.close(held)
+    assert shm.remove_orphans(tmp_path) == [alive]  # its launcher let go
     with shm.run_directory("r2", parent=tmp_path / "missing") as none:
         assert none is None
 
@@ -148,15 +181,17 @@ def _wait_matching(pub, want: bool) -> None:
         listener.undeclare()
 
 
-def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices_are_counted(sessions, tmp_path):
+def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices_are_counted(sessions, tmp_path,
+                                                                                              monkeypatch):
     _, a, b = sessions
     key = keys.world_tick("t")
     pub = ShmPublisher(a, key, tmp_path)
     drops, inbox, plain = DropCounter(), Inbox(), Inbox()
     sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops)
-    _wait_matching(pub._notice, True)
+    _wait_matching(pub._twin, True)
     assert not pub._pub.matching_status.matching  # the shared-memory reader does not listen on the key itself
-    ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(3)]
+    ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(4)]
+    ticks[2] = Tick(2, 0.2, list(range(3000)), [])  # more than tick 0 left room for in its file
     pub.put(0, 0.0, encode(ticks[0]))
     assert inbox.wait_for(1) == [(key, ticks[0])]
     # a subscriber on the key itself (a recorder) makes the writer put it over Zenoh too
@@ -165,13 +200,20 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
     pub.put(1, 0.1, encode(ticks[1]))
     assert plain.wait_for(1) == [(key, ticks[1])]
     assert inbox.wait_for(2)[1] == (key, ticks[1])
-    # garbage, a notice of another type, and a notice of a tick that is not in shared memory
-    twin = keys.in_shm(key)
-    for bad in (b"\x00garbage", encode(ticks[0]), encode(InShm(7, 0.7, 10))):
-        a.put(twin, bad)
-    a.put(twin, encode(pub._writer.write(9, 0.9, b"\xc1not a tick")))  # a notice of a payload that is garbage
-    pub.put(2, 0.2, encode(ticks[2]))  # after the bad ones, on the same link: it arrives last
-    assert inbox.wait_for(3)[2] == (key, ticks[2])
+    # a payload that cannot go into shared memory (a full tmpfs) still reaches the reader
+    fallocate = os.posix_fallocate
+    monkeypatch.setattr(os, "posix_fallocate", lambda *_: (_ for _ in ()).throw(OSError(28, "full")))
+    pub.put(2, 0.2, encode(ticks[2]))
+    monkeypatch.setattr(os, "posix_fallocate", fallocate)
+    assert pub._writer.fallbacks == 1 and inbox.wait_for(3)[2] == (key, ticks[2])
+    # garbage, a message of neither type, a notice of a tick that is not in shared memory,
+    # and a notice of a payload that is garbage
+    twin, block = keys.in_shm(key), zenoh.CongestionControl.BLOCK
+    for bad in (b"\x00garbage", encode(Command(0, 0.0, 1, 0.0, 0.0)), encode(InShm(7, 0.7, 10)),
+                encode(pub._writer.write(8, 0.8, b"\xc1not a tick"))):  # tick 8's file is not tick 3's
+        a.put(twin, bad, congestion_control=block)
+    pub.put(3, 0.3, encode(ticks[3]))  # after the bad ones, on the same link: it arrives last
+    assert inbox.wait_for(4)[3] == (key, ticks[3])
     assert drops.by_key() == {twin: 3, key: 1}
     zsub.undeclare()
     sub.undeclare()

@@ -60,8 +60,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          "the vehicle's own certificate (docs/security.md)")
     ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
     ap.add_argument("--log-level", default="INFO")
-    add_zenoh_args(ap)
     add_shm_arg(ap)
+    add_zenoh_args(ap)
     return ap.parse_args(argv)
 
 

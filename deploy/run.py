@@ -476,6 +476,9 @@ class Launcher:
                        "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line
                                      for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()},
                        "signed": self.cfg.signing, "lock_down": self.cfg.lock_down})
+        missed = exit_records(self.cfg.log_dir, shm.MISSED_LINE)
+        if missed:  # real time only: an agent two ticks late missed the tick it was told of (protocol.shm)
+            result["shm_missed"] = {name: {k: r[k] for k in ("total", "by_key")} for name, r in missed.items()}
         if self.cfg.signing:
             result["rejected"] = {name: {k: r[k] for k in ("total", "by_reason", "by_stream")}
                                   for name, r in exit_records(self.cfg.log_dir, REJECTED_LINE).items()}

@@ -149,9 +149,12 @@ MALFORMED_LINE = "malformed_dropped"  # the tag of a process's exit line (DropCo
 
 @dataclass
 class DropCounter:
-    """Counts payloads that failed to decode, per key, and logs the first of each."""
+    """Counts payloads that failed to decode, per key, and logs the first of each
+    (``tag`` and ``what``: another kind of drop, e.g. ``protocol.shm``'s misses)."""
 
     counts: dict[str, int] = field(default_factory=dict)
+    tag: str = MALFORMED_LINE
+    what: str = "malformed payload"
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
@@ -168,14 +171,14 @@ class DropCounter:
         ``malformed_dropped {"process": ..., "total": n, "by_key": {key: n}}``; the
         launcher gathers these lines into the outcome record (``deploy.procs.exit_records``)."""
         by_key = self.by_key()
-        return f"{MALFORMED_LINE} " + json.dumps({"process": process, "total": sum(by_key.values()), "by_key": by_key})
+        return f"{self.tag} " + json.dumps({"process": process, "total": sum(by_key.values()), "by_key": by_key})
 
     def add(self, key: str, err: Exception) -> None:
         with self._lock:
             n = self.counts.get(key, 0) + 1
             self.counts[key] = n
         if n == 1 or n % 100 == 0:
-            log.warning("dropped malformed payload #%d on %s: %s", n, key, err)
+            log.warning("dropped %s #%d on %s: %s", self.what, n, key, err)
 
 
 def typed_handler(expected: type, on_msg: Callable[[str, Any], None], drops: DropCounter,

@@ -49,6 +49,7 @@ T = TypeVar("T")
 HEADER = struct.Struct("<QQ")  # tick + 1 (0: being written, or never), payload size in bytes
 TMPFS = Path("/dev/shm")
 DIR_PREFIX = "autocast-"
+MISSED_LINE = "shm_missed"  # the tag of a process's exit line of misses (``missed_counter``)
 LOCK_NAME = ".launcher"  # in a run's directory: its launcher holds an flock on it
 ORPHAN_AFTER_S = 60.0
 ORDERED_STORES = ("x86_64", "AMD64", "i386", "i686")  # CPUs that keep stores (and loads) in program order
@@ -217,16 +218,24 @@ class ShmPublisher:
             self._writer.close()
 
 
+def missed_counter() -> DropCounter:
+    """Where a reader counts notices whose payload is no longer (or not) in shared
+    memory: a reader two ticks late in real-time mode misses the tick it was told of,
+    which is not a malformed message. A process prints it as it exits, ``shm_missed
+    {...}``, and the launcher gathers it into the outcome record."""
+    return DropCounter(tag=MISSED_LINE, what="payload no longer in shared memory")
+
+
 def subscribe(session: zenoh.Session, key: str, directory: Path | str | None, expected: type,
-              on_msg: Callable[[str, Any], None], drops: DropCounter) -> Any:
+              on_msg: Callable[[str, Any], None], drops: DropCounter, missed: DropCounter | None = None) -> Any:
     """Subscribe to ``key``'s messages of type ``expected``, as
     ``protocol.session.typed_handler`` does: over Zenoh, or with a directory through
     shared memory, subscribed to the twin key only (a subscriber on ``key`` itself
     would make the writer send it over Zenoh too), each ``InShm`` notice's payload
     decoded in place, and a payload the writer could not put there taken as it comes
-    on the twin. What is neither, and a notice that names no payload in shared memory,
-    is dropped and counted in ``drops`` on the twin key; a malformed payload in shared
-    memory on ``key``."""
+    on the twin. What is neither is dropped and counted in ``drops`` on the twin key, a
+    malformed payload in shared memory on ``key``; a notice whose payload is not there
+    (overwritten, or never written) in ``missed`` (``drops`` without one)."""
     if not directory:
         return session.declare_subscriber(key, typed_handler(expected, on_msg, drops))
     reader = ShmReader(directory, key)
@@ -246,7 +255,7 @@ def subscribe(session: zenoh.Session, key: str, directory: Path | str | None, ex
             try:
                 msg = reader.read(notice, lambda view: decode(view, expected))
             except ShmMiss as err:
-                drops.add(twin, err)
+                (drops if missed is None else missed).add(twin, err)
                 return
             except MalformedMessage as err:
                 drops.add(key, err)

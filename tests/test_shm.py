@@ -186,8 +186,8 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
     _, a, b = sessions
     key = keys.world_tick("t")
     pub = ShmPublisher(a, key, tmp_path)
-    drops, inbox, plain = DropCounter(), Inbox(), Inbox()
-    sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops)
+    drops, missed, inbox, plain = DropCounter(), shm.missed_counter(), Inbox(), Inbox()
+    sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops, missed)
     _wait_matching(pub._twin, True)
     assert not pub._pub.matching_status.matching  # the shared-memory reader does not listen on the key itself
     ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(4)]
@@ -214,7 +214,9 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
         a.put(twin, bad, congestion_control=block)
     pub.put(3, 0.3, encode(ticks[3]))  # after the bad ones, on the same link: it arrives last
     assert inbox.wait_for(4)[3] == (key, ticks[3])
-    assert drops.by_key() == {twin: 3, key: 1}
+    assert drops.by_key() == {twin: 2, key: 1}  # the garbage, the command; the garbage in shared memory
+    assert missed.by_key() == {twin: 1}  # tick 7 is not there: a miss, not a malformed message
+    assert missed.exit_line("x").startswith(f"{shm.MISSED_LINE} ")
     zsub.undeclare()
     sub.undeclare()
     pub.undeclare()

@@ -118,7 +118,7 @@ SCHEDULER_OF = {"agnostic": "agnostic", "autocast": "autocast", "autocast-fptas"
 def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     """Fetch the map and mission, then answer every scan with a command until stopped."""
     run, vid = args.run_id, args.vid
-    drops = DropCounter()
+    drops, missed = DropCounter(), shm.missed_counter()
     scans: queue.Queue[Scan | None] = queue.Queue()  # None: the outcome came, stop now
     deadline = time.monotonic() + args.startup_timeout_s
     try:
@@ -130,7 +130,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
     link = None if args.scheme in ("single", "lane") else \
         V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None),
-                shm_dir=args.shm_dir)
+                shm_dir=args.shm_dir, missed=missed)
     guard = Guard(args.credentials, drops) if args.credentials is not None else None
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
                     report_pub.put if report_pub is not None else None, guard)
@@ -141,7 +141,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if args.scheme != "lane":
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
     subs = [
-        shm.subscribe(session, keys.scan(run, vid), args.shm_dir, Scan, lambda k, m: scans.put(m), drops),
+        shm.subscribe(session, keys.scan(run, vid), args.shm_dir, Scan, lambda k, m: scans.put(m), drops, missed),
         session.declare_subscriber(keys.world_outcome(run),
                                    typed_handler(Outcome, lambda k, m: _halt(stop, scans), drops)),
     ]
@@ -195,6 +195,8 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     if drops.total:
         log.warning("dropped %d malformed messages", drops.total)
     print(drops.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
+    if missed.total:
+        print(missed.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
     if guard is not None:
         print(guard.rejections.exit_line(f"agent{vid}"), file=sys.stderr, flush=True)
     print("agent_timings " + json.dumps(step.timing_summary() | proc.summary()), file=sys.stderr, flush=True)

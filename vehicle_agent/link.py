@@ -59,8 +59,10 @@ class _Mailbox:
 
 class V2VLink:
     def __init__(self, session: zenoh.Session, run: str, vid: int, drops: DropCounter, stop: threading.Event,
-                 timeout_s: float = 10.0, receives_data: bool = True, shm_dir: str | None = None) -> None:
-        """``shm_dir``: the bundles come through the run's shared memory (``protocol.shm``).
+                 timeout_s: float = 10.0, receives_data: bool = True, shm_dir: str | None = None,
+                 missed: DropCounter | None = None) -> None:
+        """``shm_dir``: the bundles come through the run's shared memory (``protocol.shm``;
+        ``missed`` counts the notices whose bundle was no longer there).
 
         ``receives_data`` False: a vehicle that uses nothing it could decode (one that
         fuses nothing, ``__main__.fuses``) does not subscribe to the data bundle, which
@@ -74,12 +76,12 @@ class V2VLink:
         self.missed_bundles = 0
         self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
         self._subs = [
-            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, CtrlBundle, _into(self._ctrl), drops),
+            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, CtrlBundle, _into(self._ctrl), drops, missed),
             session.declare_subscriber(keys.net_emp_down(run, vid), typed_handler(EmpBundle, _into(self._emp), drops)),
         ]
         if receives_data:
             self._subs.append(shm.subscribe(session, keys.net_data_rx(run), shm_dir, DataBundle, _into(self._data),
-                                            drops))
+                                            drops, missed))
         self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
         self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
         self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))

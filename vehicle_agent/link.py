@@ -22,7 +22,7 @@ import numpy as np
 import zenoh
 
 from protocol import keys, shm
-from protocol.codec import MalformedMessage, decode, encode
+from protocol.codec import MalformedMessage, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
     Transmission
 from protocol.session import DropCounter, big_publisher, reliable_publisher, typed_handler

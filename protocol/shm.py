@@ -287,8 +287,19 @@ def run_directory(run_id: str, parent: Path = TMPFS) -> Iterator[Path | None]:
         yield None
         return
     remove_orphans(parent)
-    path = Path(tempfile.mkdtemp(prefix=f"{DIR_PREFIX}{os.getpid()}-{run_id}-", dir=parent))
-    lock = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        path = Path(tempfile.mkdtemp(prefix=f"{DIR_PREFIX}{os.getpid()}-{run_id}-", dir=parent))
+    except OSError as exc:
+        log.warning("no shared-memory directory in %s (%s): every payload goes over Zenoh", parent, exc)
+        yield None
+        return
+    try:
+        lock = os.open(path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError as exc:
+        shutil.rmtree(path, ignore_errors=True)
+        log.warning("no lock in %s (%s): every payload goes over Zenoh", path, exc)
+        yield None
+        return
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)
         yield path

@@ -199,14 +199,19 @@ def typed_handler(expected: type, on_msg: Callable[[str, Any], None], drops: Dro
         except ValueError as err:  # MalformedMessage is one
             drops.add(key, err)
             return
-        if msg is None:
-            return
-        try:
-            on_msg(key, msg)
-        except Exception:
-            log.exception("handler for %s failed", key)
+        if msg is not None:
+            deliver(on_msg, key, msg)
 
     return handler
+
+
+def deliver(on_msg: Callable[[str, Any], None], key: str, msg: Any) -> None:
+    """``on_msg(key, msg)`` in a Zenoh callback: what it raises is logged, never
+    propagated into Zenoh's thread."""
+    try:
+        on_msg(key, msg)
+    except Exception:
+        log.exception("handler for %s failed", key)
 
 
 def query_one(session: zenoh.Session, key: str, expected: type, timeout_s: float,

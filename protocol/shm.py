@@ -41,7 +41,7 @@ import zenoh
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import InShm
-from protocol.session import DropCounter, typed_handler
+from protocol.session import DropCounter, deliver, typed_handler
 
 log = logging.getLogger(__name__)
 
@@ -260,10 +260,7 @@ def subscribe(session: zenoh.Session, key: str, directory: Path | str | None, ex
             except MalformedMessage as err:
                 drops.add(key, err)
                 return
-        try:
-            on_msg(key, msg)
-        except Exception:
-            log.exception("handler for %s failed", key)
+        deliver(on_msg, key, msg)
 
     return _Subscription(session.declare_subscriber(twin, on_notice), reader)
 

@@ -242,3 +242,30 @@ def test_popen_is_forced_by_the_environment(monkeypatch):
     assert process_factory.disabled()
     with process_factory.activated() as f:
         assert f is None
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH") or not Path("/proc/self/task").is_dir(), reason="Linux")
+def test_batch_scheduling_covers_every_thread_and_what_starts_later():
+    """In a fresh interpreter (this one has Zenoh's threads, and keeps its policy): a
+    thread that ran before the call, one started after it and a child process all end
+    up under SCHED_BATCH, as every process of a lock-step run does (``autocast run``)."""
+    script = """
+import os, subprocess, sys, threading
+from deploy.procs import batch_scheduling
+go, seen = threading.Event(), {}
+def early():
+    go.wait()
+    seen["early"] = os.sched_getscheduler(0)
+t = threading.Thread(target=early); t.start()
+before = os.sched_getscheduler(0)
+assert batch_scheduling()
+late = threading.Thread(target=lambda: seen.__setitem__("late", os.sched_getscheduler(0))); late.start(); late.join()
+go.set(); t.join()
+child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"], capture_output=True,
+                       text=True, check=True).stdout.strip()
+print(before, os.sched_getscheduler(0), seen["early"], seen["late"], child)
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=TESTS.parent, timeout=120)
+    assert out.returncode == 0, out.stderr
+    before, *after = (int(x) for x in out.stdout.split())
+    assert before == os.SCHED_OTHER and after == [os.SCHED_BATCH] * 4

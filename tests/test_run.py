@@ -222,6 +222,9 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
                       "--agent-timeout-s", "600", faults="agent1:hang@5")
     pids = launch.pids()
     launch.wait_ticking()
+    if hasattr(os, "SCHED_BATCH"):  # a lock-step run: every thread of every process (deploy.procs.batch_scheduling)
+        assert {name: thread_policies(pid) for name, pid in pids.items()} == {name: {os.SCHED_BATCH} for name in pids}
+        assert thread_policies(launch.proc.pid) == {os.SCHED_BATCH}
     launch.proc.send_signal(signal.SIGINT)
     assert launch.finish(timeout=60) == 130, launch.stderr
     assert launch.result["interrupted"] is True and launch.result["outcome"] is None
@@ -231,6 +234,17 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
     assert summary is not None and summary.statistics.message_count > 0
     assert launch.leftovers() == []
     assert not [pid for pid in pids.values() if runs_for(pid, launch.run_id)]
+
+
+def thread_policies(pid: int) -> set[int]:
+    """The scheduling policies of ``pid``'s threads (one that ends meanwhile left out)."""
+    out = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out.add(os.sched_getscheduler(int(tid)))
+        except ProcessLookupError:
+            continue
+    return out
 
 
 def runs_for(pid: int, run_id: str) -> bool:

@@ -44,7 +44,7 @@ import msgpack
 import numpy as np
 
 from protocol import messages  # noqa: F401  (registers every message type)
-from protocol.codec import WIRE_DTYPES, MalformedMessage, array_spec, decode, encode, message_types
+from protocol.codec import WIRE_DTYPES, MalformedMessage, _packed_to_wire, array_spec, decode, encode, message_types
 from protocol.messages import Pose
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object
 
@@ -78,7 +78,8 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
     origin = typing.get_origin(hint)
     spec = array_spec(hint)
     if spec is not None:  # as declared: its dtype, its fixed dimensions, 0 to 4 along a free one
-        return _array(spec.dtype, [rnd.randint(0, 4) if d is None else d for d in spec.shape], rnd)
+        shape = [rnd.randint(0, 4) if d is None else d for d in spec.shape]
+        return _packed(spec.dtype, shape, rnd) if spec.packed else _array(spec.dtype, shape, rnd)
     if hint is np.ndarray:
         return _array(rnd.choice(sorted(WIRE_DTYPES)), [rnd.randint(0, 4) for _ in range(rnd.randint(1, 2))], rnd)
     if origin in (typing.Union, types.UnionType):
@@ -121,6 +122,16 @@ def _array(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
     return [dtype.str, shape, raw]
 
 
+def _packed(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
+    """A random packed array (``protocol.codec._packed_to_wire``) of ``dtype_str`` and
+    ``shape``: entries 0, 1 or any bits (-0.0 and NaN included)."""
+    dtype = np.dtype(dtype_str)
+    uint = np.dtype(f"<u{dtype.itemsize}")
+    one = np.ones(1, dtype).view(uint)[0]
+    bits = [rnd.choice([0, int(one), rnd.getrandbits(8 * dtype.itemsize)]) for _ in range(math.prod(shape))]
+    return _packed_to_wire(np.array(bits, uint).view(dtype).reshape(shape))
+
+
 def _plain_value(rnd: random.Random, depth: int) -> Any:
     kind = rnd.randrange(7 if depth < 3 else 5)
     if kind == 5:
@@ -145,7 +156,8 @@ def _make_consistent(fields: dict[str, Any], rnd: random.Random) -> None:
         n, m = rnd.randint(0, 4), rnd.randint(0, 4)
         shapes = {"object_id": [n], "size_bytes": [n], "centroid_xy": [n, 2], "receivers": [m],
                   "visibility": [n, m], "relevance": [n, m]}
-        fields.update({name: _array(fields[name][0], shape, rnd) for name, shape in shapes.items()})
+        fields.update({name: (_packed if name in ("visibility", "relevance") else _array)(fields[name][0], shape, rnd)
+                       for name, shape in shapes.items()})
         return
     if "receivers" in fields and ("heard" in fields or "decoded" in fields):
         receivers = sorted(rnd.sample(range(64), rnd.randint(0, 4)))

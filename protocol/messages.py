@@ -196,8 +196,10 @@ class ObjectMap:
     size_bytes: Annotated[np.ndarray, Array("<i8", (None,))]  # (n,), what the object's payload will occupy on air
     centroid_xy: Annotated[np.ndarray, Array("<f4", (None, 2))]  # (n, 2), world frame
     receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (m,)
-    visibility: Annotated[np.ndarray, Array("<f4", (None, None))]  # (n, m), v_(i,k),j: 1 = j sees it itself
-    relevance: Annotated[np.ndarray, Array("<f4", (None, None))]  # (n, m), r_(i,k),j in [0, 1]
+    # the two tables travel packed (protocol.codec: two bit masks and the entries neither 0 nor 1): most
+    # entries are 0 or 1, and a vehicle hears 39 such maps an interval at 40 vehicles
+    visibility: Annotated[np.ndarray, Array("<f4", (None, None), packed=True)]  # (n, m), v_(i,k),j: 1 = j sees it itself
+    relevance: Annotated[np.ndarray, Array("<f4", (None, None), packed=True)]  # (n, m), r_(i,k),j in [0, 1]
 
     def __post_init__(self) -> None:
         n, m = len(self.object_id), len(self.receivers)
@@ -218,7 +220,7 @@ def _no_digests() -> np.ndarray:
     return np.zeros((0, DIGEST_BYTES), dtype=np.uint8)
 
 
-@message(7, version=3)
+@message(7, version=4)
 class ControlMsg:
     """One vehicle's control message for a decision interval (paper 4.1).
 
@@ -232,7 +234,9 @@ class ControlMsg:
     have if it is scheduled this interval: a signed control message vouches for its
     sender's object payloads too, so a receiver checks a payload with one signature per
     sender and interval (docs/security.md). Empty when the run does not sign. Version 3
-    added it; it is not on air (``medium.control_onair_bytes`` counts the map only)."""
+    added it; it is not on air (``medium.control_onair_bytes`` counts the map only).
+    Version 4 packs the object map's two tables (``ObjectMap``): the same values, ~3.5x
+    fewer bytes; what is on air is counted from the map's dimensions, as before."""
 
     tick: int
     t_sim_s: float

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from channel_proxy import loss, medium
-from protocol.codec import MalformedMessage, encode
+from protocol.codec import MalformedMessage, _packed_to_wire, encode
 from protocol.messages import ControlMsg, ObjectMap, Pose
 from vehicle_agent.agreement import (AgreementConfig, HeardControl, agreed_p, agreed_state, decide, frames_of,
                                      group_of, group_schedule, members, n_groups, plan, unscheduled_after)
@@ -421,7 +421,7 @@ def test_an_object_map_whose_rows_do_not_fit_is_refused_when_opened_and_never_se
     that opens it, and a sender cannot build one."""
     m = msg(1, 5, [2], [(100, 900, {2: 1.0, 3: 0.5})])
     body = msgpack.unpackb(encode(m))
-    body[2 + 6][5] = _wire(np.zeros((1, 1), np.float32))  # relevance (1, 1) for receivers [2, 3]
+    body[2 + 6][5] = _packed_to_wire(np.zeros((1, 1), np.float32))  # relevance (1, 1) for receivers [2, 3]
     heard = HeardControl.read(msgpack.packb(body))  # the ballot and the motion are fine
     with pytest.raises(MalformedMessage, match=r"ControlMsg\.objects: 1 objects and 2 receivers"):
         heard.message()

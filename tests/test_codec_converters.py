@@ -125,8 +125,12 @@ def test_a_bad_field_deep_inside_is_named_by_its_path():
                    np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32))
     msg = ControlMsg(3, 0.3, 1, Pose(0.0, 1.0, 2.0), 4.0, np.zeros((2, 3), np.float32), om, np.array([2]))
     body = msgpack.unpackb(encode(msg), raw=False)
-    body[8][4] = ["<f4", [1, 1], b"\x00"]  # objects.visibility: 1 byte for 4
-    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.objects\.visibility: 1 bytes do not fill"):
+    body[8][2] = ["<f4", [1, 2], b"\x00"]  # objects.centroid_xy: 1 byte for 8
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.objects\.centroid_xy: 1 bytes do not fill"):
+        decode(msgpack.packb(body, use_bin_type=True), ControlMsg)
+    body = msgpack.unpackb(encode(msg), raw=False)
+    body[8][4] = ["<f4", [1, 1], b"\x01", b"\x00", b""]  # objects.visibility (packed): a padding bit set
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.objects\.visibility: mask padding bits set$"):
         decode(msgpack.packb(body, use_bin_type=True), ControlMsg)
     body = msgpack.unpackb(encode(DataBundle(1, 0.1, np.array([2]), np.ones((1, 2), bool),
                                              [Reception(1, 2, 0.01, b"a"), Reception(3, 4, 0.02, b"b")])), raw=False)
@@ -149,15 +153,37 @@ def test_an_int_where_a_float_goes_becomes_a_float_and_a_bool_is_no_int():
         decode(msgpack.packb(body, use_bin_type=True), DataBundle)
 
 
+def _reference_packed(arr: np.ndarray) -> list:
+    """A packed array (``codec._packed_to_wire``) written out entry by entry."""
+    flat = np.ascontiguousarray(arr).reshape(-1)
+    width = 8 * flat.dtype.itemsize
+    one = int(np.ones(1, flat.dtype).view(f"<u{flat.dtype.itemsize}")[0])
+    bits = [int.from_bytes(flat[i:i + 1].tobytes(), "little") for i in range(len(flat))]
+    assert all(0 <= b < 1 << width for b in bits)
+
+    def mask(marked: list[bool]) -> bytes:
+        out = bytearray((len(marked) + 7) // 8)
+        for i, m in enumerate(marked):
+            if m:
+                out[i // 8] |= 0x80 >> (i % 8)
+        return bytes(out)
+
+    others = [b not in (0, one) for b in bits]
+    values = b"".join(flat[i:i + 1].tobytes() for i in range(len(flat)) if others[i])
+    return [flat.dtype.str, list(arr.shape), mask([b == one for b in bits]), mask(others), values]
+
+
 def _reference_to_wire(value: Any) -> Any:
-    """codec._to_wire as it was: every value through the chain of type tests."""
+    """codec._to_wire as it was: every value through the chain of type tests; a field
+    declared packed, entry by entry."""
     import dataclasses
 
     if isinstance(value, np.ndarray):
         arr = np.ascontiguousarray(value)
         return [arr.dtype.str, list(arr.shape), memoryview(arr).cast("B") if arr.size else b""]
     if dataclasses.is_dataclass(value):
-        return [_reference_to_wire(getattr(value, name)) for name, _ in codec._hints(type(value))]
+        return [_reference_packed(getattr(value, name)) if (spec := codec.array_spec(hint)) is not None and spec.packed
+                else _reference_to_wire(getattr(value, name)) for name, hint in codec._hints(type(value))]
     if isinstance(value, (list, tuple)):
         return [_reference_to_wire(v) for v in value]
     if isinstance(value, dict):

@@ -4,8 +4,8 @@ import pytest
 
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, decode_fields, encode
-from protocol.messages import Command, LidarConfig, MapMsg, Mission, Outcome, Pose, Scan, Tick, VehicleSpec, Lane, \
-    LightState, TrafficLight
+from protocol.messages import Command, ControlMsg, LidarConfig, MapMsg, Mission, ObjectMap, Outcome, Pose, Scan, Tick, \
+    VehicleSpec, Lane, LightState, TrafficLight
 
 
 def _examples():
@@ -141,3 +141,57 @@ def test_decode_fields_reads_the_named_fields_as_decode_does_and_no_others():
         decode_fields(encode(scan), Pose, ("x_m",))
     with pytest.raises(MalformedMessage, match="Scan needs"):
         decode_fields(msgpack.packb(body[:-1]), Scan, ("tick",))
+
+
+# ------------------------------------------------------------------ packed arrays
+
+
+def _packed_msg(vis: np.ndarray, rel: np.ndarray) -> ControlMsg:
+    n, m = vis.shape
+    om = ObjectMap(np.arange(n, dtype=np.int64), np.full(n, 70, np.int64), np.zeros((n, 2), np.float32),
+                   np.arange(m, dtype=np.int64), vis, rel)
+    return ControlMsg(3, 0.3, 1, Pose(0.0, 1.0, 2.0), 4.0, np.zeros((2, 3), np.float32), om, np.array([2]))
+
+
+def test_a_packed_table_is_two_masks_and_the_other_values_on_the_wire():
+    """Worked by hand: entries (C order) 0, 1, 0.5 / -0.0, 0, 1: ones at 1 and 5 (bits
+    0b01000100), others at 2 and 3 (0b00110000, -0.0 is not +0.0's bits), their values
+    in order; the decoded table has every entry's bits."""
+    vis = np.array([[0.0, 1.0, 0.5], [-0.0, 0.0, 1.0]], np.float32)
+    body = msgpack.unpackb(encode(_packed_msg(vis, np.zeros((2, 3), np.float32))), raw=False)
+    assert body[8][4] == ["<f4", [2, 3], b"\x44", b"\x30", np.array([0.5, -0.0], "<f4").tobytes()]
+    assert body[8][5] == ["<f4", [2, 3], b"\x00", b"\x00", b""]  # relevance, all +0.0
+    got = decode(encode(_packed_msg(vis, vis)), ControlMsg)
+    assert got.objects.visibility.tobytes() == vis.tobytes() and got.objects.relevance.dtype == np.float32
+
+
+def test_a_packed_table_keeps_every_bit_pattern():
+    """NaNs with payloads, -0.0, denormals, infinities, 1.0 and its neighbours."""
+    bits = np.array([0, 0x80000000, 0x3F800000, 0x3F800001, 0x3F7FFFFF, 0x7FC00001, 0xFFFFFFFF, 1, 0x7F800000,
+                     0xFF800000, 0x00000000, 0x3F800000], np.uint32)
+    vis = bits.view(np.float32).reshape(3, 4)
+    rel = bits[::-1].copy().view(np.float32).reshape(3, 4)
+    msg = _packed_msg(vis, rel)
+    got = decode(encode(msg), ControlMsg).objects
+    assert got.visibility.view(np.uint32).tolist() == vis.view(np.uint32).tolist()
+    assert got.relevance.view(np.uint32).tolist() == rel.view(np.uint32).tolist()
+
+
+@pytest.mark.parametrize("table, why", [
+    (["<f4", [1, 1], b"\x00"], "expected a packed array"),  # the dense form
+    (["<f8", [1, 1], b"\x00", b"\x00", b""], "expected a packed float32 .n, n., got dtype '<f8'"),
+    (["<f4", [1], b"\x00", b"\x00", b""], "got shape"),
+    (["<f4", [1, 1], b"", b"", b""], "masks of 0 and 0 bytes for 1 entries"),
+    (["<f4", [3, 3], b"\x00", b"\x00\x00", b""], "masks of 1 and 2 bytes for 9 entries"),
+    (["<f4", [1, 1], b"\x40", b"\x00", b""], "mask padding bits set"),
+    (["<f4", [1, 1], b"\x80", b"\x80", b"\x00\x00\x00\x00"], "marked both 1 and other"),
+    (["<f4", [1, 2], b"\x00", b"\xc0", b"\x00\x00\x00\x00"], "4 bytes of values for 2 entries"),
+    (["<f4", [1, 2], b"\x00", b"\x00", b"\x00"], "1 bytes of values for 0 entries"),
+    (["<f4", [1, 1], b"\x00", "\x00", b""], "got dtype"),
+])
+def test_a_bad_packed_table_is_refused_naming_its_field(table, why):
+    msg = _packed_msg(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32))
+    body = msgpack.unpackb(encode(msg), raw=False)
+    body[8][4] = table
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.objects\.visibility: .*" + why):
+        decode(msgpack.packb(body, use_bin_type=True), ControlMsg)

@@ -50,7 +50,7 @@ import zenoh
 
 from channel_proxy import emp, loss, medium
 from channel_proxy.profiles import ChannelProfile
-from protocol import keys
+from protocol import keys, phases
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.faults import Injector
 from protocol.messages import (ChannelStats, ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment,
@@ -375,6 +375,7 @@ class ChannelProxy:
         live, expected = self._live(tick)
         ctrl = self._collect("ctrl", k, expected, self._deadline(t_open, self.cfg.ctrl_deadline_s))
         t_work = time.perf_counter()
+        phases.mark("proxy.ctrl_closed", k)
         ctrl = self._only_live(ctrl, live)
         absent_ctrl = self._account(expected, set(ctrl))
         for vid, (msg, _) in ctrl.items():
@@ -387,8 +388,10 @@ class ChannelProxy:
         out = medium.play_control(live, s_idx, sizes, loss.link_probabilities(xy, profile.prr, self.cfg.ctrl_loss),
                                   reach, capacity_bytes=profile.ctrl_capacity_bytes, seed=self.cfg.seed, tick=k)
         columns, frames = self._with_extras(senders, [ctrl[v][1] for v in senders.tolist()], self._extras)
-        self._bundles[keys.net_ctrl_rx(run)].put(k, tick.t_sim_s, encode(CtrlBundle(
-            k, tick.t_sim_s, senders[columns], live, np.ascontiguousarray(out.heard.T[:, columns]), frames)))
+        bundle = encode(CtrlBundle(k, tick.t_sim_s, senders[columns], live, np.ascontiguousarray(out.heard.T[:, columns]),
+                                   frames))
+        phases.mark("proxy.ctrl_bundle_sent", k)
+        self._bundles[keys.net_ctrl_rx(run)].put(k, tick.t_sim_s, bundle)
         ctrl_stats = {
             "senders": len(senders),
             "offered_bytes": int(sizes.sum()),
@@ -432,6 +435,7 @@ class ChannelProxy:
     def _deliver_data(self, tick: Tick, live: np.ndarray, xy: np.ndarray, reach: np.ndarray,
                       data: dict[int, tuple[DataTx, bytes]]) -> dict[str, Any]:
         k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        phases.mark("proxy.data_closed", k)
         txs: list[tuple[int, Any]] = []
         for vid in sorted(data):
             for t in data[vid][0].transmissions:
@@ -454,8 +458,9 @@ class ChannelProxy:
                       for t in order.tolist()]
         twins, extra = self._extra_receptions(txs, self._extras, out.delivered.any(axis=1), rx_s)
         decoded = out.delivered[np.concatenate([order, np.array(twins, dtype=np.int64)])]
-        self._bundles[keys.net_data_rx(run)].put(k, tick.t_sim_s, encode(DataBundle(
-            k, tick.t_sim_s, live, np.ascontiguousarray(decoded.T), receptions + extra)))
+        bundle = encode(DataBundle(k, tick.t_sim_s, live, np.ascontiguousarray(decoded.T), receptions + extra))
+        phases.mark("proxy.data_bundle_sent", k)
+        self._bundles[keys.net_data_rx(run)].put(k, tick.t_sim_s, bundle)
         size_col = size[:, None]
         sent = ~out.overflow
         return {

@@ -60,3 +60,33 @@ def test_the_readme_documents_every_headline_key():
     assert set(documented) == set(HEADLINE_KEYS)
     for name, keys in HEADLINE_KEYS.items():
         assert tuple(k.removesuffix("=...") for k in documented[name].split()) == keys, name
+
+
+def test_the_phase_marks_of_a_run_are_ordered_as_its_messages(tmp_path):
+    """``bench.critical_path``'s run: every process marks every phase of every tick it
+    plays (a mark before a send, one after the receive), so each receive comes after the
+    send it waited for, on the one clock of the host; then the bench's own summary."""
+    from bench import critical_path
+    from bench.critical_path import EVENTS, read_marks, run_marked, summarize
+
+    marks_dir = tmp_path / "marks"
+    marks_dir.mkdir()
+    outcome = run_marked(3, "autocast", "left_turn", 1.5, tmp_path / "runs", marks_dir)
+    marks = read_marks(marks_dir)
+    ticks = [k for k in sorted(marks) if any("world.stepped" in e for e in marks[k].values())]
+    assert len(ticks) == outcome["ticks"] == 15
+
+    def times(k: int, event: str) -> list[float]:
+        return [e[event][0] for e in marks[k].values() if event in e]
+
+    for k in ticks:
+        assert len(times(k, "agent.scan")) == len(times(k, "agent.cmd_sent")) == 3
+        for send, receive in [("world.tick", "agent.scan"), ("agent.ctrl_sent", "proxy.ctrl_closed"),
+                              ("proxy.ctrl_bundle_sent", "agent.ctrl_bundle"), ("agent.data_sent", "proxy.data_closed"),
+                              ("proxy.data_bundle_sent", "agent.data_bundle"), ("agent.cmd_sent", "world.commands_in")]:
+            if times(k, receive):  # an agent that fuses nothing takes no data bundle
+                assert max(times(k, send)) <= min(times(k, receive)), (k, send, receive)
+    summary = summarize(marks, skip=1)
+    assert set(summary["events"]) <= set(EVENTS) and "proxy.ctrl_closed" in summary["events"]
+    assert summary["tick_ms"] > 0
+    assert critical_path.main(["--vehicles", "3", "--duration", "1", "--skip", "1", "--out", str(tmp_path / "runs")]) == 0

@@ -23,7 +23,7 @@ import numpy as np
 
 from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
-from protocol import keys, shm
+from protocol import keys, phases, shm
 from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Rejected, Scan, Transmission
@@ -167,6 +167,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
             if scan is None:
                 break
             last_scan = time.monotonic()
+            phases.mark("agent.scan", scan.tick)
             faults.at(scan.tick)
             try:
                 with stall:  # a stalled tick leaves its stack in the log
@@ -175,7 +176,9 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                 log.exception("tick %d failed; braking", scan.tick)
                 spec = mission.spec
                 cmd = Command(scan.tick, scan.t_sim_s, vid, -spec.max_brake_mps2, 0.0)
-            cmd_pub.put(step.wire(cmd))
+            wire = step.wire(cmd)
+            phases.mark("agent.cmd_sent", scan.tick)
+            cmd_pub.put(wire)
             if guard is not None and guard.rejections.version != published_rejections:  # for the log
                 published_rejections = guard.rejections.version
                 rejected_pub.put(encode(Rejected(scan.tick, scan.t_sim_s, vid, guard.rejections.summary())))

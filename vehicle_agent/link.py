@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from protocol import keys, shm
+from protocol import keys, phases, shm
 from protocol.codec import MalformedMessage, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, Pose, Reception, \
     Transmission
@@ -108,8 +108,11 @@ class V2VLink:
     def exchange_control_raw(self, raw: bytes, tick: int) -> CtrlBundle | None:
         """Broadcast our encoded (or sealed) control message of ``tick``; return the
         interval's bundle (None if none came: the caller counts it missed)."""
+        phases.mark("agent.ctrl_sent", tick)
         self._ctrl_pub.put(raw)
-        return self._take(self._ctrl, tick)
+        bundle = self._take(self._ctrl, tick)
+        phases.mark("agent.ctrl_bundle", tick)
+        return bundle
 
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission],
                       receive: bool = True) -> list[Reception]:
@@ -119,10 +122,14 @@ class V2VLink:
         (``receives_data``) and ``receive`` asks for it."""
         if receive and not self.receives_data:
             raise ValueError("this link does not take the data bundle (receives_data=False)")
-        self._data_pub.put(encode(DataTx(tick, t_sim_s, self.vid, transmissions)))
+        raw = encode(DataTx(tick, t_sim_s, self.vid, transmissions))
+        phases.mark("agent.data_sent", tick)
+        self._data_pub.put(raw)
         if not receive:
             return []
-        mine = received_in(self._take(self._data, tick), self.vid)
+        bundle = self._take(self._data, tick)
+        phases.mark("agent.data_bundle", tick)
+        mine = received_in(bundle, self.vid)
         if mine is None:
             self.missed_bundles += 1
             return []

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from protocol import keys
+from protocol import keys, phases
 from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, Outcome, Scan, Tick
@@ -233,11 +233,13 @@ class WorldServer:
         self.faults.at(k)
         with self._cv:
             live = sorted(self._live)
+        phases.mark("world.tick", k)
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
         self._truth_pub.put(encode(sim.truth()))
         for v in sim.sense_each(live):  # each scan goes out as soon as it is cast: its agent starts at once
             self._scan_pubs[v.vid].put(k, sim.t_sim_s, encode(Scan(k, sim.t_sim_s, v.vid, v.pose, v.speed_mps,
                                                                    v.range_cm)))
+        phases.mark("world.scans_sent", k)
         if self.realtime:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
         else:
@@ -245,8 +247,10 @@ class WorldServer:
         with self._cv:
             report = self._reports.pop(k, None)
             self._reports = {t: r for t, r in self._reports.items() if t > k}
+        phases.mark("world.commands_in", k)
         sim.step(commands, ego_fused_xy=None if report is None else report.fused_xy)
         self.stats.ticks += 1
+        phases.mark("world.stepped", k)
 
     def _collect_lockstep(self, k: int) -> dict[int, tuple[float, float]]:
         deadline = time.monotonic() + self.agent_timeout_s

@@ -7,8 +7,9 @@ for a core).
     python -m bench.critical_path --vehicles 40
     python -m bench.critical_path --vehicles 10 --scheme agnostic --duration 4
 
-A phase of the interval is as long as the CPU every process spends in it over the
-machine's cores, plus what runs in no phase: compare the sums with the tick (docs/
+The run: ``autocast run --scenario SCENARIO --vehicles N --scheme SCHEME --duration D
+--delta 3 --scans none``. A phase of the interval is as long as the CPU every process
+spends in it over the machine's cores, plus what runs in no phase: compare the sums with the tick (docs/
 architecture.md, "Where a tick's wall time goes"). Linux or any system with one
 monotonic clock for all processes; one host only.
 """
@@ -32,7 +33,8 @@ EVENTS = ("world.tick", "agent.scan", "world.scans_sent", "agent.ctrl_sent", "pr
           "proxy.data_bundle_sent", "agent.data_bundle", "agent.cmd_sent", "world.commands_in", "world.stepped")
 # an agent's main thread between two of its marks: (label, from, to, only the agents that take the data bundle)
 SPANS = (("scan -> control message out (perception, spatial reasoning)", "agent.scan", "agent.ctrl_sent", None),
-         ("control bundle in -> data out (the rule, the schedule, payloads)", "agent.ctrl_bundle", "agent.data_sent", None),
+         ("control bundle in -> data out (reading it, the schedule, payloads)", "agent.ctrl_bundle", "agent.data_sent",
+          None),
          ("data bundle in -> command out (fusion, planning), fusing agents", "agent.data_bundle", "agent.cmd_sent", True),
          ("data out -> command out (planning), the others", "agent.data_sent", "agent.cmd_sent", False))
 

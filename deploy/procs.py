@@ -164,30 +164,37 @@ def has_argument(pid: int, word: str) -> bool:
     return word.encode() in cmdline.replace(b"\0", b" ").split()
 
 
-def batch_scheduling() -> bool:
-    """Put every thread of this process under Linux's ``SCHED_BATCH`` policy, and so every
-    thread and process it starts from now on (fork, threads and exec inherit it). Returns
-    whether it did (not on other systems, nor where the kernel refuses).
+def batch_scheduling(batch: bool = True) -> bool:
+    """Put every thread of this process under Linux's ``SCHED_BATCH`` policy (``batch``),
+    or take those under it back to the default ``SCHED_OTHER`` (not ``batch``; other
+    policies are left alone), and so every thread and process it starts from now on
+    (fork, threads and exec inherit the policy). Returns whether every thread is now so
+    (False on other systems, or where the kernel refuses).
 
     A lock-step run is tens of CPU-bound processes on a few cores that wake together at
     each phase of an interval. Under the default policy a process that wakes preempts the
     one running, which then finishes its stage later on cold caches; under ``SCHED_BATCH``
     it waits for the running one to block or use up its slice. At 40 vehicles on 2 cores
     the real-time factor rose 2% (docs/architecture.md). No privilege is needed: it lowers
-    no priority, it only gives up preempting on wake-up."""
+    no priority, it only gives up preempting on wake-up. A real-time run wants the
+    opposite: a late wake-up is a late command."""
     if not hasattr(os, "SCHED_BATCH"):
         return False
+    want = os.SCHED_BATCH if batch else os.SCHED_OTHER
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:  # no /proc: the calling thread, whose later threads and children inherit it
         tids = [0]
-    done = False
+    done = True
     for tid in tids:
         try:
-            os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
-            done = True
-        except OSError as exc:  # a thread that ended, or a kernel or sandbox that refuses
-            log.debug("SCHED_BATCH for thread %d: %s", tid, exc)
+            if batch or os.sched_getscheduler(tid) == os.SCHED_BATCH:
+                os.sched_setscheduler(tid, want, os.sched_param(0))
+        except ProcessLookupError:  # a thread that ended meanwhile
+            continue
+        except OSError as exc:  # a kernel or sandbox that refuses
+            log.debug("scheduling policy %d for thread %d: %s", want, tid, exc)
+            done = False
     return done
 
 

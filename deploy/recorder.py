@@ -140,7 +140,8 @@ def schema_of(cls: type) -> bytes:
     hints = typing.get_type_hints(cls)
     fields = [{"name": f.name, "type": _type_name(hints[f.name])} for f in dataclasses.fields(cls)]
     return json.dumps({"type_id": cls.TYPE_ID, "version": cls.VERSION, "module": cls.__module__,
-                       "wire": "msgpack array [type_id, version, *fields]; numpy arrays as [dtype, shape, bytes]",
+                       "wire": "msgpack array [type_id, version, *fields]; numpy arrays as [dtype, shape, bytes], "
+                               "packed ones as [dtype, shape, ones, others, values] (protocol/codec.py)",
                        "fields": fields}).encode()
 
 

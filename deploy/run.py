@@ -517,8 +517,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     log.info("run %s: %s, %d vehicles, scheme %s -> %s", opts.run.run_id, opts.run.params.scenario,
              opts.run.params.vehicles, opts.run.scheme, opts.run.run_dir)
-    if not opts.run.realtime:  # this launcher and all it starts: throughput, not wake-up latency (deploy.procs)
-        batch_scheduling()
+    # this launcher and all it starts: throughput in lock-step, wake-up latency in real time (deploy.procs)
+    batch_scheduling(batch=not opts.run.realtime)
     outcome = launch(opts, stop)
     return report(outcome, opts.run, args.json, time.monotonic() - t0)
 

@@ -20,8 +20,8 @@ deeper than msgpack's stack (1024 levels) is refused, and a free-form (``Any``) 
 may hold only msgpack's plain types, at most ``MAX_ANY_DEPTH`` levels deep. The
 remaining cost is msgpack's: a payload of n bytes builds at most ~80 n bytes of
 Python objects (one empty list per byte; ``autocast bench fuzz`` measures it). A
-packed array's masks must hold a bit per entry, so it builds at most 4 (float32) or 8
-(float64) entries' bytes per mask byte brought: 32 or 64 n.
+packed array's masks hold a bit per entry, so each mask byte brought builds 8 entries:
+32 bytes of float32 or 64 of float64 per byte.
 """
 
 from __future__ import annotations
@@ -340,9 +340,10 @@ def _array_converter(spec: Array) -> Converter:
 
 
 def _packed_converter(spec: Array) -> Converter:
-    """A packed array field (``_packed_to_wire``): its declared dtype and shape, masks of
-    a bit per entry whose padding bits are 0 and that mark no entry twice, and a value
-    for every entry the second marks; anything else is refused."""
+    """A packed array field (``_packed_to_wire``) as the encoder writes it: its declared
+    dtype and shape, masks of a bit per entry whose padding bits are 0 and that mark no
+    entry twice, and a value for every entry the second marks that is neither 1.0 nor
+    +0.0 (those have their own form: one array, one encoding); anything else is refused."""
 
     dtype, ndim = np.dtype(spec.dtype), len(spec.shape)
     fixed = [(axis, d) for axis, d in enumerate(spec.shape) if d is not None]
@@ -351,8 +352,10 @@ def _packed_converter(spec: Array) -> Converter:
         if type(value) is not list or len(value) != 5:
             _bad("expected a packed array [dtype, shape, ones, others, values]")
         dtype_str, shape, ones, others, raw = value
-        if dtype_str != spec.dtype or type(ones) is not bytes or type(others) is not bytes or type(raw) is not bytes:
+        if dtype_str != spec.dtype:
             _bad(f"expected a packed {spec}, got dtype {_brief(dtype_str)}")
+        if type(ones) is not bytes or type(others) is not bytes or type(raw) is not bytes:
+            _bad("a packed array's masks and values are bytes")
         if type(shape) is not list or len(shape) != ndim or any(type(d) is not int or d < 0 for d in shape) \
                 or any(shape[axis] != d for axis, d in fixed):
             _bad(f"expected a packed {spec}, got shape {_brief(shape)}")
@@ -373,7 +376,11 @@ def _packed_converter(spec: Array) -> Converter:
         if one:
             out[np.unpackbits(np.frombuffer(ones, np.uint8), count=count).view(np.bool_)] = 1.0
         if other:
-            out[np.unpackbits(np.frombuffer(others, np.uint8), count=count).view(np.bool_)] = np.frombuffer(raw, dtype)
+            uint, one_bits = _BITS_OF[spec.dtype]
+            bits = np.frombuffer(raw, uint)
+            if ((bits == 0) | (bits == one_bits)).any():
+                _bad("a value of 1.0 or +0.0 among the others")
+            out[np.unpackbits(np.frombuffer(others, np.uint8), count=count).view(np.bool_)] = bits.view(dtype)
         return out.reshape(shape)
 
     return convert

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, Phase, settings
@@ -104,3 +105,12 @@ def procs():
         if p.poll() is None:
             p.kill()
         p.communicate()
+
+
+def batch_allowed() -> bool:
+    """Whether this system lets a process under the default policy take SCHED_BATCH (Linux
+    does, unprivileged; a sandbox may refuse), tried in a child of the default policy."""
+    if not hasattr(os, "SCHED_BATCH") or not Path("/proc/self/task").is_dir():
+        return False
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))"
+    return os.sched_getscheduler(0) == os.SCHED_OTHER and subprocess.run([sys.executable, "-c", probe]).returncode == 0

@@ -30,7 +30,7 @@ from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command
 from protocol.session import ZenohArgs, session_scope
-from tests.conftest import wait_until
+from tests.conftest import batch_allowed, wait_until
 
 TESTS = Path(__file__).resolve().parent
 
@@ -244,28 +244,36 @@ def test_popen_is_forced_by_the_environment(monkeypatch):
         assert f is None
 
 
-@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH") or not Path("/proc/self/task").is_dir(), reason="Linux")
-def test_batch_scheduling_covers_every_thread_and_what_starts_later():
+@pytest.mark.skipif(not batch_allowed(), reason="Linux, under the default policy, where SCHED_BATCH may be taken")
+def test_batch_scheduling_covers_every_thread_and_what_starts_later_and_is_undone():
     """In a fresh interpreter (this one has Zenoh's threads, and keeps its policy): a
     thread that ran before the call, one started after it and a child process all end
-    up under SCHED_BATCH, as every process of a lock-step run does (``autocast run``)."""
+    up under SCHED_BATCH, as every process of a lock-step run does (``autocast run``);
+    ``batch=False`` (a real-time run) takes every thread back to the default policy."""
     script = """
 import os, subprocess, sys, threading
 from deploy.procs import batch_scheduling
-go, seen = threading.Event(), {}
+go, back, seen = threading.Event(), threading.Event(), {}
 def early():
     go.wait()
     seen["early"] = os.sched_getscheduler(0)
+    back.wait()
+    seen["early_back"] = os.sched_getscheduler(0)
 t = threading.Thread(target=early); t.start()
 before = os.sched_getscheduler(0)
 assert batch_scheduling()
 late = threading.Thread(target=lambda: seen.__setitem__("late", os.sched_getscheduler(0))); late.start(); late.join()
-go.set(); t.join()
+go.set()
 child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"], capture_output=True,
                        text=True, check=True).stdout.strip()
-print(before, os.sched_getscheduler(0), seen["early"], seen["late"], child)
+after = os.sched_getscheduler(0)
+while "early" not in seen: go.wait(0.01)
+assert batch_scheduling(batch=False)
+back.set(); t.join()
+print(before, after, seen["early"], seen["late"], child, os.sched_getscheduler(0), seen["early_back"])
 """
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=TESTS.parent, timeout=120)
     assert out.returncode == 0, out.stderr
-    before, *after = (int(x) for x in out.stdout.split())
-    assert before == os.SCHED_OTHER and after == [os.SCHED_BATCH] * 4
+    before, *batch, main_back, early_back = (int(x) for x in out.stdout.split())
+    assert before == os.SCHED_OTHER and batch == [os.SCHED_BATCH] * 4
+    assert main_back == early_back == os.SCHED_OTHER

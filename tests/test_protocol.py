@@ -187,7 +187,9 @@ def test_a_packed_table_keeps_every_bit_pattern():
     (["<f4", [1, 1], b"\x80", b"\x80", b"\x00\x00\x00\x00"], "marked both 1 and other"),
     (["<f4", [1, 2], b"\x00", b"\xc0", b"\x00\x00\x00\x00"], "4 bytes of values for 2 entries"),
     (["<f4", [1, 2], b"\x00", b"\x00", b"\x00"], "1 bytes of values for 0 entries"),
-    (["<f4", [1, 1], b"\x00", "\x00", b""], "got dtype"),
+    (["<f4", [1, 1], b"\x00", "\x00", b""], "masks and values are bytes"),
+    (["<f4", [1, 1], b"\x00", b"\x80", np.ones(1, "<f4").tobytes()], "a value of 1.0 or \\+0.0 among the others"),
+    (["<f4", [1, 1], b"\x00", b"\x80", np.zeros(1, "<f4").tobytes()], "a value of 1.0 or \\+0.0 among the others"),
 ])
 def test_a_bad_packed_table_is_refused_naming_its_field(table, why):
     msg = _packed_msg(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32))

@@ -17,6 +17,7 @@ from mcap.reader import make_reader
 from deploy import table
 from deploy.run import main as run_main
 from deploy.run import options_from, parse_args
+from tests.conftest import batch_allowed
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Outcome, Scan, Tick
@@ -222,7 +223,7 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
                       "--agent-timeout-s", "600", faults="agent1:hang@5")
     pids = launch.pids()
     launch.wait_ticking()
-    if hasattr(os, "SCHED_BATCH"):  # a lock-step run: every thread of every process (deploy.procs.batch_scheduling)
+    if batch_allowed():  # a lock-step run: every thread of every process (deploy.procs.batch_scheduling)
         assert {name: thread_policies(pid) for name, pid in pids.items()} == {name: {os.SCHED_BATCH} for name in pids}
         assert thread_policies(launch.proc.pid) == {os.SCHED_BATCH}
     launch.proc.send_signal(signal.SIGINT)

@@ -111,7 +111,8 @@ class V2VLink:
         phases.mark("agent.ctrl_sent", tick)
         self._ctrl_pub.put(raw)
         bundle = self._take(self._ctrl, tick)
-        phases.mark("agent.ctrl_bundle", tick)
+        if bundle is not None:
+            phases.mark("agent.ctrl_bundle", tick)
         return bundle
 
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission],
@@ -128,7 +129,8 @@ class V2VLink:
         if not receive:
             return []
         bundle = self._take(self._data, tick)
-        phases.mark("agent.data_bundle", tick)
+        if bundle is not None:
+            phases.mark("agent.data_bundle", tick)
         mine = received_in(bundle, self.vid)
         if mine is None:
             self.missed_bundles += 1

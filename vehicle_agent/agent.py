@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,16 +130,27 @@ class Agent:
         return Obstacles(*(np.concatenate([a, b]) for a, b in zip(own.columns(), received.columns()))), moving
 
 
-@contextmanager
-def timed(timings_ms: dict[str, float], stage: str):
-    """Add the block's wall time to ``stage`` and its thread's CPU time to
-    ``stage_cpu``, in ms (a stage timed twice in a tick counts both; an exception
-    records nothing)."""
-    t0, c0 = time.perf_counter(), time.thread_time()
-    yield
-    cpu_key = f"{stage}_cpu"
-    timings_ms[cpu_key] = timings_ms.get(cpu_key, 0.0) + (time.thread_time() - c0) * 1e3
-    timings_ms[stage] = timings_ms.get(stage, 0.0) + (time.perf_counter() - t0) * 1e3
+class timed:
+    """``with timed(timings_ms, stage):`` adds the block's wall time to ``stage`` and its
+    thread's CPU time to ``stage_cpu``, in ms (a stage timed twice in a tick counts both;
+    an exception records nothing). A class, not a generator context manager: an agent
+    times ~18 blocks a tick, and the generator's machinery cost 1.6 us a block."""
+
+    __slots__ = ("timings_ms", "stage", "t0", "c0")
+
+    def __init__(self, timings_ms: dict[str, float], stage: str) -> None:
+        self.timings_ms, self.stage = timings_ms, stage
+
+    def __enter__(self) -> None:
+        self.t0, self.c0 = time.perf_counter(), time.thread_time()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            return
+        timings_ms, stage = self.timings_ms, self.stage
+        cpu_key = stage + "_cpu"
+        timings_ms[cpu_key] = timings_ms.get(cpu_key, 0.0) + (time.thread_time() - self.c0) * 1e3
+        timings_ms[stage] = timings_ms.get(stage, 0.0) + (time.perf_counter() - self.t0) * 1e3
 
 
 def _mark_objects(mask: np.ndarray, grid, points: np.ndarray, starts: np.ndarray, counts: np.ndarray,

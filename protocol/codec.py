@@ -147,7 +147,7 @@ def _packed_to_wire(value: np.ndarray) -> list:
     entries whose bits are 1.0's and of those that are neither 1.0 nor +0.0; ``values``
     are the latter's bytes, in order. Every entry's bits come back as they were (-0.0
     and NaN are "others"). A vehicle's object map is such a table twice, with most
-    entries 0 (relevance) or 0 and 1 (visibility): a control message shrank ~3.5x."""
+    entries 0 (relevance) or 0 and 1 (visibility): a control message shrank ~3x."""
     flat = np.ascontiguousarray(value).reshape(-1)
     uint, one = _BITS_OF[flat.dtype.str]
     bits = flat.view(uint)
@@ -347,6 +347,7 @@ def _packed_converter(spec: Array) -> Converter:
 
     dtype, ndim = np.dtype(spec.dtype), len(spec.shape)
     fixed = [(axis, d) for axis, d in enumerate(spec.shape) if d is not None]
+    uint, one_bits = _BITS_OF[spec.dtype]
 
     def convert(value: Any) -> np.ndarray:
         if type(value) is not list or len(value) != 5:
@@ -376,7 +377,6 @@ def _packed_converter(spec: Array) -> Converter:
         if one:
             out[np.unpackbits(np.frombuffer(ones, np.uint8), count=count).view(np.bool_)] = 1.0
         if other:
-            uint, one_bits = _BITS_OF[spec.dtype]
             bits = np.frombuffer(raw, uint)
             if ((bits == 0) | (bits == one_bits)).any():
                 _bad("a value of 1.0 or +0.0 among the others")

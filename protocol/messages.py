@@ -235,7 +235,7 @@ class ControlMsg:
     sender's object payloads too, so a receiver checks a payload with one signature per
     sender and interval (docs/security.md). Empty when the run does not sign. Version 3
     added it; it is not on air (``medium.control_onair_bytes`` counts the map only).
-    Version 4 packs the object map's two tables (``ObjectMap``): the same values, ~3.5x
+    Version 4 packs the object map's two tables (``ObjectMap``): the same values, ~3x
     fewer bytes; what is on air is counted from the map's dimensions, as before."""
 
     tick: int

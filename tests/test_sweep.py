@@ -386,3 +386,36 @@ def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):
     assert not leftovers([run_id])
     assert not (out / "results.jsonl").exists() or not lines(out / "results.jsonl")
     assert "the same command resumes" in err
+
+
+def test_the_delay_table_names_the_control_messages_it_cannot_read(tmp_path, caplog):
+    """A run's object joins its sender's control message of the interval. One this build
+    cannot read (here an earlier message version) leaves its objects out, and the run
+    says how many it left; the JSON mirror of a readable one is not counted as unreadable."""
+    import msgpack
+
+    from deploy.recorder import McapLog
+    from protocol.codec import encode
+    from protocol.messages import ChannelStats, ControlMsg, ObjectMap, Pose
+
+    def ctrl(vid: int) -> ControlMsg:
+        om = ObjectMap(np.array([7]), np.array([500]), np.zeros((1, 2), np.float32), np.array([9]),
+                       np.zeros((1, 1), np.float32), np.ones((1, 1), np.float32))
+        return ControlMsg(3, 0.3, vid, Pose(0.0, 0.0, 0.0), 1.0, np.zeros((2, 3), np.float32), om, np.array([9]))
+
+    old = msgpack.unpackb(encode(ctrl(2)))
+    old[1] = ControlMsg.VERSION - 1
+    stats = ChannelStats(3, 0.3, {"data": {"objects": [[1, 7, 0.0, 0.004], [2, 7, 0.0, 0.008]]}})
+    path = tmp_path / "run.mcap"
+    with open(path, "wb") as f:
+        log = McapLog(f, {}, json_mirror=True)
+        log.write("ac/r/net/ctrl/tx/1", encode(ctrl(1)), 1)
+        log.write("ac/r/net/ctrl/tx/2", msgpack.packb(old), 2)
+        log.write("ac/r/net/stats", encode(stats), 3)
+        log.finish()
+    with caplog.at_level("WARNING", logger="deploy.report"):
+        sent = report.schedule_of_run(path)
+    assert [(s.sender, s.object_id) for s in sent] == [(1, 7)]  # vehicle 2's object: no readable offer
+    assert sent[0].reward == 1.0  # (1 - v) r of its one receiver
+    warnings = [r.getMessage() for r in caplog.records if r.name == "deploy.report"]
+    assert len(warnings) == 1 and "1 control messages unreadable" in warnings[0] and "version" in warnings[0]

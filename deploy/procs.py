@@ -14,10 +14,15 @@ stack and loading the numba kernels again. ``AUTOCAST_FACTORY=popen`` forces Pop
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import functools
 import json
 import logging
 import os
+import platform
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -164,23 +169,38 @@ def has_argument(pid: int, word: str) -> bool:
     return word.encode() in cmdline.replace(b"\0", b" ").split()
 
 
-def batch_scheduling(batch: bool = True) -> bool:
-    """Put every thread of this process under Linux's ``SCHED_BATCH`` policy (``batch``),
-    or take those under it back to the default ``SCHED_OTHER`` (not ``batch``; other
-    policies are left alone), and so every thread and process it starts from now on
-    (fork, threads and exec inherit the policy). Returns whether every thread is now so
-    (False on other systems, or where the kernel refuses).
+# sched_setattr(2)'s number, where Linux has one for this machine (the generic table's 274 on
+# the newer architectures); elsewhere only the policy is set
+_SCHED_SETATTR = {"x86_64": 314, "aarch64": 274, "riscv64": 274, "loongarch64": 274, "ppc64le": 355,
+                  "s390x": 345}.get(platform.machine())
+_SCHED_GETATTR = {314: 315, 274: 275, 355: 356, 345: 346}.get(_SCHED_SETATTR)
+_SCHED_ATTR = struct.Struct("=IIQiIQQQ")  # struct sched_attr as of Linux 3.14 (SCHED_ATTR_SIZE_VER0)
+BATCH_SLICE_MS = 20.0  # longer than any stage of a lock-step tick: a stage runs on to its end
+
+
+def batch_scheduling(batch: bool = True, slice_ms: float = BATCH_SLICE_MS) -> bool:
+    """Put every thread of this process under Linux's ``SCHED_BATCH`` policy (``batch``)
+    with a time slice of ``slice_ms``, or take those under it back to the default
+    ``SCHED_OTHER`` and its default slice (not ``batch``; other policies are left alone),
+    and so every thread and process it starts from now on (fork, threads and exec inherit
+    both). Returns whether every thread now has the policy (False on other systems, or
+    where the kernel refuses).
 
     A lock-step run is tens of CPU-bound processes on a few cores that wake together at
     each phase of an interval. Under the default policy a process that wakes preempts the
     one running, which then finishes its stage later on cold caches; under ``SCHED_BATCH``
-    it waits for the running one to block or use up its slice. At 40 vehicles on 2 cores
-    the real-time factor rose 2% (docs/architecture.md). No privilege is needed: it lowers
-    no priority, it only gives up preempting on wake-up. A real-time run wants the
-    opposite: a late wake-up is a late command."""
+    it waits for the running one to block or use up its slice. The slice: Linux 6.12 and
+    later let a thread ask for its own (``sched_setattr``'s ``sched_runtime``, up to 100 ms;
+    earlier kernels ignore it); the default, 1.4 ms on 2 cores, is about
+    one agent stage, so half the stages were cut in two, each half on cold caches.
+    At 40 vehicles on 2 cores the policy raised the real-time factor 2%, the slice 3-4% more
+    (docs/architecture.md). No privilege is needed: neither lowers a priority, they only
+    give up preempting on wake-up and being preempted after 1.4 ms. A real-time run wants
+    the opposite: a late wake-up is a late command."""
     if not hasattr(os, "SCHED_BATCH"):
         return False
     want = os.SCHED_BATCH if batch else os.SCHED_OTHER
+    slice_ns = round(slice_ms * 1e6) if batch else 0  # 0: the kernel's default
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:  # no /proc: the calling thread, whose later threads and children inherit it
@@ -189,13 +209,46 @@ def batch_scheduling(batch: bool = True) -> bool:
     for tid in tids:
         try:
             if batch or os.sched_getscheduler(tid) == os.SCHED_BATCH:
-                os.sched_setscheduler(tid, want, os.sched_param(0))
+                _set_scheduling(tid, want, slice_ns)
         except ProcessLookupError:  # a thread that ended meanwhile
             continue
         except OSError as exc:  # a kernel or sandbox that refuses
             log.debug("scheduling policy %d for thread %d: %s", want, tid, exc)
             done = False
     return done
+
+
+def _set_scheduling(tid: int, policy: int, slice_ns: int) -> None:
+    """``policy`` (a fair one) for thread ``tid`` and, where the kernel has ``sched_setattr``,
+    the slice ``slice_ns`` (0: the default). ``OSError`` if refused."""
+    if _SCHED_SETATTR is not None:
+        attr = _SCHED_ATTR.pack(_SCHED_ATTR.size, policy, 0, 0, 0, slice_ns, 0, 0)
+        if _libc().syscall(ctypes.c_long(_SCHED_SETATTR), ctypes.c_long(tid), attr, ctypes.c_uint(0)) == 0:
+            return
+        err = ctypes.get_errno()
+        if err == errno.ESRCH:
+            raise ProcessLookupError(err, os.strerror(err))
+        log.debug("sched_setattr for thread %d: %s; the policy alone", tid, os.strerror(err))
+    os.sched_setscheduler(tid, policy, os.sched_param(0))  # sched_setscheduler keeps a slice as it is
+
+
+def scheduling(tid: int = 0) -> tuple[int, int | None]:
+    """Thread ``tid``'s policy and fair slice in ns (None where the kernel does not say:
+    no ``sched_getattr``, or a kernel before 6.12, which reports 0)."""
+    policy = os.sched_getscheduler(tid)
+    if _SCHED_GETATTR is None:
+        return policy, None
+    buf = ctypes.create_string_buffer(_SCHED_ATTR.size)
+    if _libc().syscall(ctypes.c_long(_SCHED_GETATTR), ctypes.c_long(tid), buf, ctypes.c_uint(_SCHED_ATTR.size),
+                       ctypes.c_uint(0)) != 0:
+        return policy, None
+    slice_ns = _SCHED_ATTR.unpack(buf.raw)[5]
+    return policy, slice_ns or None
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(None, use_errno=True)
 
 
 def _signal(proc: Proc, sig: int) -> None:

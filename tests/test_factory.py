@@ -248,32 +248,37 @@ def test_popen_is_forced_by_the_environment(monkeypatch):
 def test_batch_scheduling_covers_every_thread_and_what_starts_later_and_is_undone():
     """In a fresh interpreter (this one has Zenoh's threads, and keeps its policy): a
     thread that ran before the call, one started after it and a child process all end
-    up under SCHED_BATCH, as every process of a lock-step run does (``autocast run``);
-    ``batch=False`` (a real-time run) takes every thread back to the default policy."""
+    up under SCHED_BATCH with the batch slice (where the kernel reports slices: Linux
+    6.12 and later), as every process of a lock-step run does (``autocast run``);
+    ``batch=False`` (a real-time run) takes every thread back to the default policy and
+    the default slice."""
     script = """
-import os, subprocess, sys, threading
-from deploy.procs import batch_scheduling
+import json, os, subprocess, sys, threading
+from deploy.procs import batch_scheduling, scheduling
 go, back, seen = threading.Event(), threading.Event(), {}
 def early():
     go.wait()
-    seen["early"] = os.sched_getscheduler(0)
+    seen["early"] = scheduling()
     back.wait()
-    seen["early_back"] = os.sched_getscheduler(0)
+    seen["early_back"] = scheduling()
 t = threading.Thread(target=early); t.start()
-before = os.sched_getscheduler(0)
-assert batch_scheduling()
-late = threading.Thread(target=lambda: seen.__setitem__("late", os.sched_getscheduler(0))); late.start(); late.join()
+before = scheduling()
+assert batch_scheduling(slice_ms=7.5)
+late = threading.Thread(target=lambda: seen.__setitem__("late", scheduling())); late.start(); late.join()
 go.set()
-child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"], capture_output=True,
-                       text=True, check=True).stdout.strip()
-after = os.sched_getscheduler(0)
+child = subprocess.run([sys.executable, "-c", "from deploy.procs import scheduling; print(list(scheduling()))"],
+                       capture_output=True, text=True, check=True).stdout
+after = scheduling()
 while "early" not in seen: go.wait(0.01)
 assert batch_scheduling(batch=False)
 back.set(); t.join()
-print(before, after, seen["early"], seen["late"], child, os.sched_getscheduler(0), seen["early_back"])
+print(json.dumps([before, after, seen["early"], seen["late"], json.loads(child), scheduling(), seen["early_back"]]))
 """
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=TESTS.parent, timeout=120)
     assert out.returncode == 0, out.stderr
-    before, *batch, main_back, early_back = (int(x) for x in out.stdout.split())
-    assert before == os.SCHED_OTHER and batch == [os.SCHED_BATCH] * 4
+    (before, default_slice), *batch, (main_back, main_slice), (early_back, early_slice) = json.loads(out.stdout)
+    assert before == os.SCHED_OTHER and [policy for policy, _ in batch] == [os.SCHED_BATCH] * 4
     assert main_back == early_back == os.SCHED_OTHER
+    if default_slice is not None and default_slice != 7_500_000:  # a kernel that reports a fair slice
+        assert [slice_ns for _, slice_ns in batch] == [7_500_000] * 4
+        assert main_slice == early_slice == default_slice

@@ -534,6 +534,29 @@ def _field_lines(env: dict[str, Any], fields: list[tuple[int, Any]]) -> list[str
     return lines or ["        pass"]
 
 
+def slots_constructor(cls: type) -> typing.Callable[..., Any]:
+    """A function of a frozen, slotted dataclass's fields (all, in order, positional)
+    that builds the instance as its ``__init__`` would, without the ``object.__setattr__``
+    call per field a frozen ``__init__`` makes: each slot's own descriptor sets it (as a
+    record's converter does). For a class without ``__post_init__``, whose fields are all
+    ``init`` fields with slots; ``TypeError`` otherwise.
+
+    At 40 vehicles an agent reads 39 heard control messages a tick; their 8-field
+    ``__init__`` was a third of that (1.5 of 4.7 us a message)."""
+    names = [f.name for f in dataclasses.fields(cls)]
+    slots = [cls.__dict__.get(name) for name in names]
+    if hasattr(cls, "__post_init__") or not all(f.init for f in dataclasses.fields(cls)) or \
+            not all(isinstance(d, types.MemberDescriptorType) for d in slots):
+        raise TypeError(f"{cls.__name__}: not a slotted dataclass of init fields without __post_init__")
+    env: dict[str, Any] = {"cls": cls, "new": object.__new__}
+    env.update({f"s{i}": d.__set__ for i, d in enumerate(slots)})
+    args = ", ".join(f"a{i}" for i in range(len(names)))
+    lines = [f"def construct({args}):", "    out = new(cls)"] + \
+        [f"    s{i}(out, a{i})" for i in range(len(names))] + ["    return out"]
+    exec("\n".join(lines), env)  # noqa: S102 - the source is built from the class's own field list
+    return env["construct"]
+
+
 def _record_converter(cls: type) -> Converter:
     """A record's conversion, written out as one function for its fields (generated
     once per class): the field count, then each field's converter in turn, the name of

@@ -335,3 +335,43 @@ def test_a_well_formed_array_is_taken_inline(spec):
     arr = np.zeros([rows if d is None else d for d in spec.shape], dtype=spec.dtype)
     got = _fast(spec)([arr.dtype.str, list(arr.shape), arr.tobytes()])
     assert got is not _DECLINED and got.dtype == arr.dtype and got.shape == arr.shape
+
+
+def test_a_slots_constructor_builds_what_init_builds_and_refuses_what_it_cannot():
+    """``slots_constructor`` builds an instance equal field by field to the class's own
+    ``__init__``'s, still frozen; a class with ``__post_init__``, without slots or with a
+    non-init field is refused (its ``__init__`` does more than set the fields)."""
+    import dataclasses
+
+    from vehicle_agent.agreement import HeardControl
+
+    build = codec.slots_constructor(Pose)
+    got, want = build(1.5, -2.0, 0.25), Pose(1.5, -2.0, 0.25)
+    assert type(got) is Pose and got == want
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        got.x_m = 0.0
+    traj, heard = np.zeros((3, 2), np.float32), np.array([1, 4], np.int64)
+    args = (7, 0.7, 3, want, 9.5, traj, heard, b"raw")
+    made = codec.slots_constructor(HeardControl)(*args)
+    assert [getattr(made, f.name) for f in dataclasses.fields(HeardControl)] == list(args)
+
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Checked:
+        a: int
+
+        def __post_init__(self) -> None:
+            if self.a < 0:
+                raise ValueError("a")
+
+    @dataclasses.dataclass(frozen=True)
+    class NoSlots:
+        a: int
+
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Derived:
+        a: int
+        b: int = dataclasses.field(init=False, default=0)
+
+    for cls in (Checked, NoSlots, Derived):
+        with pytest.raises(TypeError, match=cls.__name__):
+            codec.slots_constructor(cls)

@@ -90,3 +90,24 @@ def test_the_phase_marks_of_a_run_are_ordered_as_its_messages(tmp_path):
     assert set(summary["events"]) <= set(EVENTS) and "proxy.ctrl_closed" in summary["events"]
     assert summary["tick_ms"] > 0
     assert critical_path.main(["--vehicles", "3", "--duration", "1", "--skip", "1", "--out", str(tmp_path / "runs")]) == 0
+
+
+def test_the_cold_wake_bench_times_the_work_after_each_sleep_and_stops_what_it_started():
+    """``python -m bench.cold_wake`` (not an ``autocast bench``: a finding, not a figure of
+    ours) prints a median per sleep and per neighbour, and its spinners are gone after."""
+    res = subprocess.run([sys.executable, "-m", "bench.cold_wake", "--sleeps", "0,1", "--repeat", "5",
+                          "--beside", "idle", "--beside", "spin"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    figures = headline("cold_wake", res.stdout)
+    assert list(figures) == ["idle_after0ms_us", "idle_after1ms_us", "spin_after0ms_us", "spin_after1ms_us"]
+    assert all(v > 0.0 for v in figures.values()), figures
+    from bench.cold_wake import _BESIDE
+
+    left = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if _BESIDE["spin"].encode() in cmdline.read_bytes():
+                left.append(cmdline.parent.name)
+        except OSError:  # gone meanwhile
+            pass
+    assert left == [], left  # killed and waited for

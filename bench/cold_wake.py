@@ -38,7 +38,7 @@ from collections.abc import Iterator
 import numpy as np
 
 _BESIDE = {
-    "spin": "import os, time\nos.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\nwhile True: pass\n",
+    "spin": "import os\nos.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\nwhile True: pass\n",
     "thrash": "import numpy as np\na = np.ones(1 << 20)\nwhile True: a += 1.0\n",
 }
 
@@ -78,10 +78,12 @@ def beside(kind: str) -> Iterator[None]:
         finally:
             os.close(fd)
         return
-    procs = [] if kind == "idle" else [subprocess.Popen([sys.executable, "-c", _BESIDE[kind]])
-                                       for _ in range(os.cpu_count() or 1)]
+    procs = []
     try:
-        time.sleep(0.3 if procs else 0.0)  # let them start
+        if kind != "idle":
+            for _ in os.sched_getaffinity(0):  # one a core; each kept as soon as it exists
+                procs.append(subprocess.Popen([sys.executable, "-c", _BESIDE[kind]]))
+            time.sleep(0.3)  # let them start
         yield
     finally:
         for p in procs:

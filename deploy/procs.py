@@ -169,13 +169,16 @@ def has_argument(pid: int, word: str) -> bool:
     return word.encode() in cmdline.replace(b"\0", b" ").split()
 
 
-# sched_setattr(2)'s number, where Linux has one for this machine (the generic table's 274 on
-# the newer architectures); elsewhere only the policy is set
+# sched_setattr(2)'s and sched_getattr(2)'s numbers, for a 64-bit process on these machines
+# (the generic table's 274 on the newer ones); elsewhere, a 32-bit Python on a 64-bit kernel
+# included, only the policy is set
 _SCHED_SETATTR = {"x86_64": 314, "aarch64": 274, "riscv64": 274, "loongarch64": 274, "ppc64le": 355,
-                  "s390x": 345}.get(platform.machine())
+                  "ppc64": 355, "s390x": 345}.get(platform.machine()) if struct.calcsize("P") == 8 else None
 _SCHED_GETATTR = {314: 315, 274: 275, 355: 356, 345: 346}.get(_SCHED_SETATTR)
 _SCHED_ATTR = struct.Struct("=IIQiIQQQ")  # struct sched_attr as of Linux 3.14 (SCHED_ATTR_SIZE_VER0)
+_FAIR = frozenset(getattr(os, name) for name in ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE") if hasattr(os, name))
 BATCH_SLICE_MS = 20.0  # longer than any stage of a lock-step tick: a stage runs on to its end
+SLICE_RANGE_MS = (0.1, 100.0)  # what Linux takes (it clamps the rest)
 
 
 def batch_scheduling(batch: bool = True, slice_ms: float = BATCH_SLICE_MS) -> bool:
@@ -183,72 +186,94 @@ def batch_scheduling(batch: bool = True, slice_ms: float = BATCH_SLICE_MS) -> bo
     with a time slice of ``slice_ms``, or take those under it back to the default
     ``SCHED_OTHER`` and its default slice (not ``batch``; other policies are left alone),
     and so every thread and process it starts from now on (fork, threads and exec inherit
-    both). Returns whether every thread now has the policy (False on other systems, or
-    where the kernel refuses).
+    both). Each thread keeps its nice value. Returns whether every thread now has the
+    policy (False on other systems, or where the kernel refuses); a slice the kernel does
+    not take is logged once as a warning.
 
     A lock-step run is tens of CPU-bound processes on a few cores that wake together at
     each phase of an interval. Under the default policy a process that wakes preempts the
     one running, which then finishes its stage later on cold caches; under ``SCHED_BATCH``
     it waits for the running one to block or use up its slice. The slice: Linux 6.12 and
-    later let a thread ask for its own (``sched_setattr``'s ``sched_runtime``, up to 100 ms;
-    earlier kernels ignore it); the default, 1.4 ms on 2 cores, is about
-    one agent stage, so half the stages were cut in two, each half on cold caches.
-    At 40 vehicles on 2 cores the policy raised the real-time factor 2%, the slice 3-4% more
-    (docs/architecture.md). No privilege is needed: neither lowers a priority, they only
-    give up preempting on wake-up and being preempted after 1.4 ms. A real-time run wants
-    the opposite: a late wake-up is a late command."""
+    later let a thread ask for its own (``sched_setattr``'s ``sched_runtime``); earlier
+    kernels ignore it. The default (1.4 ms on this project's 2-core machines, with Linux
+    6.18) is about one agent stage, so half the stages were cut in two, each half resumed
+    on cold caches. At 40 vehicles on 2 cores the policy raised the real-time factor 2%,
+    the slice 3% more (docs/architecture.md). No privilege is needed: neither raises a
+    priority, they only give up preempting on wake-up and being preempted at the end of
+    the default slice. A real-time run wants the opposite: a late wake-up is a late
+    command."""
     if not hasattr(os, "SCHED_BATCH"):
         return False
+    if batch and not SLICE_RANGE_MS[0] <= slice_ms <= SLICE_RANGE_MS[1]:
+        raise ValueError(f"slice_ms must lie in [{SLICE_RANGE_MS[0]}, {SLICE_RANGE_MS[1]}], not {slice_ms}")
     want = os.SCHED_BATCH if batch else os.SCHED_OTHER
     slice_ns = round(slice_ms * 1e6) if batch else 0  # 0: the kernel's default
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:  # no /proc: the calling thread, whose later threads and children inherit it
         tids = [0]
-    done = True
+    done, slice_refused = True, None
+    # a thread started meanwhile by one not yet visited keeps its policy: a run calls this
+    # before it starts any (deploy.run)
     for tid in tids:
         try:
             if batch or os.sched_getscheduler(tid) == os.SCHED_BATCH:
-                _set_scheduling(tid, want, slice_ns)
+                slice_refused = _set_scheduling(tid, want, slice_ns) or slice_refused
         except ProcessLookupError:  # a thread that ended meanwhile
             continue
         except OSError as exc:  # a kernel or sandbox that refuses
             log.debug("scheduling policy %d for thread %d: %s", want, tid, exc)
             done = False
+    if slice_refused and slice_ns:
+        log.warning("the kernel did not take a %g ms time slice (%s): the default applies", slice_ms, slice_refused)
     return done
 
 
-def _set_scheduling(tid: int, policy: int, slice_ns: int) -> None:
-    """``policy`` (a fair one) for thread ``tid`` and, where the kernel has ``sched_setattr``,
-    the slice ``slice_ns`` (0: the default). ``OSError`` if refused."""
+def _set_scheduling(tid: int, policy: int, slice_ns: int) -> str | None:
+    """``policy`` (a fair one) for thread ``tid``, its nice value kept, and, where the
+    kernel has ``sched_setattr``, the slice ``slice_ns`` (0: the default). Returns why the
+    slice was not set (None if it was, or where there is no ``sched_setattr``); raises
+    ``OSError`` if the policy is refused."""
+    refused = None
     if _SCHED_SETATTR is not None:
-        attr = _SCHED_ATTR.pack(_SCHED_ATTR.size, policy, 0, 0, 0, slice_ns, 0, 0)
-        if _libc().syscall(ctypes.c_long(_SCHED_SETATTR), ctypes.c_long(tid), attr, ctypes.c_uint(0)) == 0:
-            return
+        nice = os.getpriority(os.PRIO_PROCESS, tid)  # per thread on Linux; sched_setattr sets it too
+        attr = ctypes.create_string_buffer(_SCHED_ATTR.pack(_SCHED_ATTR.size, policy, 0, nice, 0, slice_ns, 0, 0),
+                                           _SCHED_ATTR.size)
+        if _syscall(_SCHED_SETATTR, tid, attr, 0) == 0:
+            return None
         err = ctypes.get_errno()
         if err == errno.ESRCH:
             raise ProcessLookupError(err, os.strerror(err))
-        log.debug("sched_setattr for thread %d: %s; the policy alone", tid, os.strerror(err))
+        refused = os.strerror(err)
     os.sched_setscheduler(tid, policy, os.sched_param(0))  # sched_setscheduler keeps a slice as it is
+    return refused
 
 
 def scheduling(tid: int = 0) -> tuple[int, int | None]:
-    """Thread ``tid``'s policy and fair slice in ns (None where the kernel does not say:
-    no ``sched_getattr``, or a kernel before 6.12, which reports 0)."""
+    """Thread ``tid``'s policy and, for a fair policy, its time slice in ns (None where
+    the kernel does not say: no ``sched_getattr``, or a kernel before 6.12, which reports
+    0; None for other policies)."""
     policy = os.sched_getscheduler(tid)
-    if _SCHED_GETATTR is None:
+    if _SCHED_GETATTR is None or policy not in _FAIR:
         return policy, None
     buf = ctypes.create_string_buffer(_SCHED_ATTR.size)
-    if _libc().syscall(ctypes.c_long(_SCHED_GETATTR), ctypes.c_long(tid), buf, ctypes.c_uint(_SCHED_ATTR.size),
-                       ctypes.c_uint(0)) != 0:
+    if _syscall(_SCHED_GETATTR, tid, buf, _SCHED_ATTR.size, 0) != 0:
         return policy, None
     slice_ns = _SCHED_ATTR.unpack(buf.raw)[5]
     return policy, slice_ns or None
 
 
+def _syscall(number: int, *args: int | ctypes.Array) -> int:
+    """libc's ``syscall``, every integer argument as a long (it reads each as one)."""
+    return _libc().syscall(ctypes.c_long(number), *(a if isinstance(a, ctypes.Array) else ctypes.c_long(a)
+                                                   for a in args))
+
+
 @functools.cache
 def _libc() -> ctypes.CDLL:
-    return ctypes.CDLL(None, use_errno=True)
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.syscall.restype = ctypes.c_long
+    return libc
 
 
 def _signal(proc: Proc, sig: int) -> None:

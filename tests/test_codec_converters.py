@@ -339,8 +339,9 @@ def test_a_well_formed_array_is_taken_inline(spec):
 
 def test_a_slots_constructor_builds_what_init_builds_and_refuses_what_it_cannot():
     """``slots_constructor`` builds an instance equal field by field to the class's own
-    ``__init__``'s, still frozen; a class with ``__post_init__``, without slots or with a
-    non-init field is refused (its ``__init__`` does more than set the fields)."""
+    ``__init__``'s, still frozen; a class with ``__post_init__``, without slots, with a
+    non-init field or with inherited fields is refused (its ``__init__`` does more than
+    set its own slots)."""
     import dataclasses
 
     from vehicle_agent.agreement import HeardControl
@@ -368,10 +369,14 @@ def test_a_slots_constructor_builds_what_init_builds_and_refuses_what_it_cannot(
         a: int
 
     @dataclasses.dataclass(frozen=True, slots=True)
-    class Derived:
+    class NotInit:
         a: int
         b: int = dataclasses.field(init=False, default=0)
 
-    for cls in (Checked, NoSlots, Derived):
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Inherits(Pose):  # Pose's fields sit in Pose's slots
+        z_m: float = 0.0
+
+    for cls in (Checked, NoSlots, NotInit, Inherits):
         with pytest.raises(TypeError, match=cls.__name__):
             codec.slots_constructor(cls)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import select
 import signal
 import subprocess
@@ -23,6 +24,7 @@ import pytest
 import zenoh
 
 from deploy import factory as process_factory
+from deploy import procs
 from deploy.factory import Factory, FactoryError, ForkedProcess
 from deploy.procs import ProcessManager, has_argument
 from deploy.sweep import kill_run_processes
@@ -248,19 +250,21 @@ def test_popen_is_forced_by_the_environment(monkeypatch):
 def test_batch_scheduling_covers_every_thread_and_what_starts_later_and_is_undone():
     """In a fresh interpreter (this one has Zenoh's threads, and keeps its policy): a
     thread that ran before the call, one started after it and a child process all end
-    up under SCHED_BATCH with the batch slice (where the kernel reports slices: Linux
-    6.12 and later), as every process of a lock-step run does (``autocast run``);
-    ``batch=False`` (a real-time run) takes every thread back to the default policy and
-    the default slice."""
+    up under SCHED_BATCH with the batch slice (where the kernel has slices of its own:
+    Linux 6.12 and later), their nice value kept, as every process of a lock-step run
+    does (``autocast run``); ``batch=False`` (a real-time run) takes every thread back to
+    the default policy and the default slice."""
     script = """
 import json, os, subprocess, sys, threading
 from deploy.procs import batch_scheduling, scheduling
+os.nice(3)  # a niced launcher stays as nice
 go, back, seen = threading.Event(), threading.Event(), {}
 def early():
     go.wait()
     seen["early"] = scheduling()
     back.wait()
     seen["early_back"] = scheduling()
+    seen["early_nice"] = os.getpriority(os.PRIO_PROCESS, 0)  # this thread's, on Linux
 t = threading.Thread(target=early); t.start()
 before = scheduling()
 assert batch_scheduling(slice_ms=7.5)
@@ -273,12 +277,28 @@ while "early" not in seen: go.wait(0.01)
 assert batch_scheduling(batch=False)
 back.set(); t.join()
 print(json.dumps([before, after, seen["early"], seen["late"], json.loads(child), scheduling(), seen["early_back"]]))
+print(os.getpriority(os.PRIO_PROCESS, 0), seen["early_nice"])
 """
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=TESTS.parent, timeout=120)
     assert out.returncode == 0, out.stderr
-    (before, default_slice), *batch, (main_back, main_slice), (early_back, early_slice) = json.loads(out.stdout)
+    policies, nices = out.stdout.splitlines()
+    (before, default_slice), *batch, (main_back, main_slice), (early_back, early_slice) = json.loads(policies)
     assert before == os.SCHED_OTHER and [policy for policy, _ in batch] == [os.SCHED_BATCH] * 4
     assert main_back == early_back == os.SCHED_OTHER
-    if default_slice is not None and default_slice != 7_500_000:  # a kernel that reports a fair slice
+    assert nices.split() == ["3", "3"]
+    if procs._SCHED_GETATTR is not None and kernel_at_least(6, 12):  # a thread's own slice, and reported
+        assert default_slice is not None and default_slice != 7_500_000
         assert [slice_ns for _, slice_ns in batch] == [7_500_000] * 4
         assert main_slice == early_slice == default_slice
+
+
+def kernel_at_least(major: int, minor: int) -> bool:
+    release = re.match(r"(\d+)\.(\d+)", os.uname().release)
+    return release is not None and (int(release[1]), int(release[2])) >= (major, minor)
+
+
+def test_a_batch_slice_out_of_the_kernels_range_is_refused_before_anything_is_set():
+    with pytest.raises(ValueError, match="slice_ms"):
+        procs.batch_scheduling(slice_ms=0.0)
+    with pytest.raises(ValueError, match="slice_ms"):
+        procs.batch_scheduling(slice_ms=250.0)

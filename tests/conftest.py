@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -105,6 +106,16 @@ def procs():
         if p.poll() is None:
             p.kill()
         p.communicate()
+
+
+def reports_slices() -> bool:
+    """Whether this kernel gives a thread a time slice of its own and reports it (Linux
+    6.12 and later), through ``deploy.procs``' ``sched_getattr`` for this machine."""
+    from deploy import procs
+
+    release = re.match(r"(\d+)\.(\d+)", os.uname().release) if hasattr(os, "uname") else None
+    return procs._SCHED_GETATTR is not None and release is not None and \
+        (int(release[1]), int(release[2])) >= (6, 12)
 
 
 def batch_allowed() -> bool:

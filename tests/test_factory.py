@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import select
 import signal
 import subprocess
@@ -32,7 +31,7 @@ from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command
 from protocol.session import ZenohArgs, session_scope
-from tests.conftest import batch_allowed, wait_until
+from tests.conftest import batch_allowed, reports_slices, wait_until
 
 TESTS = Path(__file__).resolve().parent
 
@@ -286,15 +285,10 @@ print(os.getpriority(os.PRIO_PROCESS, 0), seen["early_nice"])
     assert before == os.SCHED_OTHER and [policy for policy, _ in batch] == [os.SCHED_BATCH] * 4
     assert main_back == early_back == os.SCHED_OTHER
     assert nices.split() == ["3", "3"]
-    if procs._SCHED_GETATTR is not None and kernel_at_least(6, 12):  # a thread's own slice, and reported
+    if reports_slices():
         assert default_slice is not None and default_slice != 7_500_000
         assert [slice_ns for _, slice_ns in batch] == [7_500_000] * 4
         assert main_slice == early_slice == default_slice
-
-
-def kernel_at_least(major: int, minor: int) -> bool:
-    release = re.match(r"(\d+)\.(\d+)", os.uname().release)
-    return release is not None and (int(release[1]), int(release[2])) >= (major, minor)
 
 
 def test_a_batch_slice_out_of_the_kernels_range_is_refused_before_anything_is_set():

@@ -15,9 +15,10 @@ import pytest
 from mcap.reader import make_reader
 
 from deploy import table
+from deploy.procs import BATCH_SLICE_MS, scheduling
 from deploy.run import main as run_main
 from deploy.run import options_from, parse_args
-from tests.conftest import batch_allowed
+from tests.conftest import batch_allowed, reports_slices
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Outcome, Scan, Tick
@@ -224,8 +225,9 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
     pids = launch.pids()
     launch.wait_ticking()
     if batch_allowed():  # a lock-step run: every thread of every process (deploy.procs.batch_scheduling)
-        assert {name: thread_policies(pid) for name, pid in pids.items()} == {name: {os.SCHED_BATCH} for name in pids}
-        assert thread_policies(launch.proc.pid) == {os.SCHED_BATCH}
+        want = (os.SCHED_BATCH, round(BATCH_SLICE_MS * 1e6) if reports_slices() else None)
+        assert {name: thread_policies(pid) for name, pid in pids.items()} == {name: {want} for name in pids}
+        assert thread_policies(launch.proc.pid) == {want}
     launch.proc.send_signal(signal.SIGINT)
     assert launch.finish(timeout=60) == 130, launch.stderr
     assert launch.result["interrupted"] is True and launch.result["outcome"] is None
@@ -237,12 +239,13 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
     assert not [pid for pid in pids.values() if runs_for(pid, launch.run_id)]
 
 
-def thread_policies(pid: int) -> set[int]:
-    """The scheduling policies of ``pid``'s threads (one that ends meanwhile left out)."""
+def thread_policies(pid: int) -> set[tuple[int, int | None]]:
+    """The scheduling policy and slice (``deploy.procs.scheduling``) of each of ``pid``'s
+    threads (one that ends meanwhile left out)."""
     out = set()
     for tid in os.listdir(f"/proc/{pid}/task"):
         try:
-            out.add(os.sched_getscheduler(int(tid)))
+            out.add(scheduling(int(tid)))
         except ProcessLookupError:
             continue
     return out

@@ -738,6 +738,45 @@ def test_a_mover_on_a_lane_takes_the_lane_direction_and_keeps_its_speed():
     assert parked.velocity.tolist() == [0.0, 0.0]
 
 
+def _lane_segment_reference(xy, vel, a, d, length, half, snap_deg):
+    """``LaneDirections.snap``'s choice as it was written in numpy over (T, S) arrays:
+    the segment each mover is on (along, across and heading), nearest across, first on a
+    tie; -1 if none."""
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    rel = xy[:, None, :] - a[None]
+    along = np.einsum("tsk,sk->ts", rel, d)
+    across = np.abs(rel[..., 0] * d[None, :, 1] - rel[..., 1] * d[None, :, 0])
+    cos = (vel @ d.T) / np.maximum(speed, 1e-9)[:, None]
+    on = (along >= 0) & (along <= length[None]) & (across <= half[None]) & (cos >= np.cos(np.radians(snap_deg)))
+    score = np.where(on, across, np.inf)
+    best = np.argmin(score, axis=1)
+    return np.where(np.isfinite(score[np.arange(len(best)), best]), best, -1)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), movers=st.integers(1, 12), segments=st.integers(1, 60),
+       twins=st.booleans())
+def test_the_lane_segment_kernel_chooses_as_the_numpy_arrays_did(seed, movers, segments, twins):
+    """``_lane_segment`` against the numpy statements it replaced, on random movers and
+    segments (half of them repeated, ``twins``, for ties; some movers standing still)."""
+    from vehicle_agent.dataplane import LaneDirections, _lane_segment
+
+    rng = np.random.default_rng(seed)
+    xy = rng.normal(0.0, 30.0, (movers, 2))
+    vel = rng.normal(0.0, 8.0, (movers, 2)) * (rng.random((movers, 1)) > 0.2)
+    a = rng.normal(0.0, 30.0, (segments, 2))
+    d = rng.normal(0.0, 1.0, (segments, 2))
+    d /= np.hypot(d[:, 0], d[:, 1])[:, None]
+    length, half = rng.uniform(1.0, 60.0, segments), rng.uniform(1.0, 40.0, segments)
+    if twins:
+        k = segments // 2
+        for col in (a, d, length, half):
+            col[segments - k:] = col[:k]
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    got = _lane_segment(xy, vel, speed, a, d, length, half, float(np.cos(np.radians(LaneDirections.SNAP_DEG))))
+    assert got.tolist() == _lane_segment_reference(xy, vel, a, d, length, half, LaneDirections.SNAP_DEG).tolist()
+
+
 def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed():
     from vehicle_agent.payload import decode_objects
 

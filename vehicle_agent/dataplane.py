@@ -360,24 +360,43 @@ class LaneDirections:
         self.half = np.concatenate(half) if half else np.zeros(0)
 
     def snap(self, tracks: list[Track]) -> None:
-        """Turn each moving track's velocity to the direction of the lane it drives along."""
+        """Turn each moving track's velocity to the direction of the lane it drives along:
+        of the segments it is on (along it, within half the lane's width across, heading
+        within ``SNAP_DEG``), the nearest across; the first such one on a tie."""
         movers = [t for t in tracks if t.speed_mps > 0.0]
         if not movers or not len(self.a):
             return
-        xy = np.array([t.xy for t in movers])  # (T, 2)
-        vel = np.array([t.velocity for t in movers])
+        xy = np.array([t.xy for t in movers], dtype=np.float64)  # (T, 2)
+        vel = np.array([t.velocity for t in movers], dtype=np.float64)
         speed = np.hypot(vel[:, 0], vel[:, 1])
-        rel = xy[:, None, :] - self.a[None]  # (T, S, 2)
-        along = np.einsum("tsk,sk->ts", rel, self.d)
-        across = np.abs(rel[..., 0] * self.d[None, :, 1] - rel[..., 1] * self.d[None, :, 0])
-        cos = (vel @ self.d.T) / np.maximum(speed, 1e-9)[:, None]
-        on = (along >= 0) & (along <= self.length[None]) & (across <= self.half[None]) & \
-             (cos >= np.cos(np.radians(self.SNAP_DEG)))
-        score = np.where(on, across, np.inf)
-        best = np.argmin(score, axis=1)
+        best = _lane_segment(xy, vel, speed, self.a, self.d, self.length, self.half,
+                             float(np.cos(np.radians(self.SNAP_DEG))))
         for i, tr in enumerate(movers):
-            if np.isfinite(score[i, best[i]]):
+            if best[i] >= 0:
                 tr.velocity = speed[i] * self.d[best[i]]
+
+
+@njit(cache=True)
+def _lane_segment(xy, vel, speed, a, d, length, half, cos_min):
+    """``LaneDirections.snap``'s segment of each mover, -1 if none: one pass over the
+    (mover, segment) pairs instead of six (T, S) numpy arrays (~70 -> ~10 us a tick with
+    184 segments). The products are written as two-term sums; numpy's ``einsum`` and
+    matrix product may round the last bit otherwise, which moves a decision only for a
+    mover within ~1e-15 of a segment's end or of the heading bound."""
+    best = np.full(xy.shape[0], -1, dtype=np.int64)
+    for t in range(xy.shape[0]):
+        sp = max(speed[t], 1e-9)
+        nearest = np.inf
+        for s in range(a.shape[0]):
+            rx, ry = xy[t, 0] - a[s, 0], xy[t, 1] - a[s, 1]
+            along = rx * d[s, 0] + ry * d[s, 1]
+            across = abs(rx * d[s, 1] - ry * d[s, 0])
+            if along < 0.0 or along > length[s] or across > half[s] or across >= nearest:
+                continue
+            if (vel[t, 0] * d[s, 0] + vel[t, 1] * d[s, 1]) / sp >= cos_min:
+                nearest = across
+                best[t] = s
+    return best
 
 
 def _box_corners(boxes: np.ndarray) -> np.ndarray:

@@ -129,6 +129,9 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap.add_argument("--out", default="runs", metavar="DIR", help="runs go to DIR/<run id>/ (default runs/)")
     ap.add_argument("--run-id", default=None, help="default: <date>-<time>-<4 hex>")
     ap.add_argument("--scans", default="ego", help="LiDAR scans the recorder keeps: ego (default) | all | none")
+    ap.add_argument("--no-json-mirror", action="store_true",
+                    help="the recorder writes no JSON mirror beside the msgpack channels (half its CPU; "
+                         "`autocast export --foxglove` writes one later); sweeps record so")
     ap.add_argument("--agent-timeout-s", default="10", help="wall time an agent may take for a tick before "
                     "the world declares it dead (default 10)")
     ap.add_argument("--wait-for", nargs="+", default=[], metavar="NAME",
@@ -203,7 +206,7 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
                           agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
                           channel_profile=profile, signing=args.sign, lock_down=args.lock_down,
-                          wait_for=wait_for)
+                          wait_for=wait_for, json_mirror=not args.no_json_mirror)
     return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
 
 

@@ -83,6 +83,7 @@ class SweepSpec:
     agent_timeout_s: float = 10.0  # wall time an agent may take for a tick before the world declares it dead
     scans: str = "none"  # LiDAR scans the recorder keeps; the report needs none of them
     mcap_limit_mb: float = 200.0  # a run's MCAP larger than this is deleted (EMP logs every point cloud)
+    json_mirror: bool = False  # each run's recorder writes the JSON mirror too (half its CPU; the report reads none)
 
     def size(self) -> int:
         return math.prod(len(getattr(self, a)) for a in AXES)
@@ -193,6 +194,10 @@ def spec_from(values: Mapping[str, Any], name: str) -> SweepSpec:
             if not ok or v < 0 or (positive and v == 0):
                 raise SweepError(f"{key}: {v!r} is not a number {'> 0' if positive else '>= 0'}")
             out[key] = float(v)
+    if "json_mirror" in values:
+        if not isinstance(values["json_mirror"], bool):
+            raise SweepError(f"json_mirror: {values['json_mirror']!r} is not true or false")
+        out["json_mirror"] = values["json_mirror"]
     if "scans" in values:
         if values["scans"] not in SCANS:
             raise SweepError(f"scans: {values['scans']!r} is not one of {', '.join(SCANS)}")
@@ -254,6 +259,8 @@ def narrowed(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
                 raise SweepError(f"{key}: {text!r} is not a number") from None
     if args.scans is not None:
         out["scans"] = args.scans
+    if args.json_mirror:
+        out["json_mirror"] = True
     return out
 
 
@@ -690,7 +697,8 @@ def launcher_args(spec: SweepSpec, key: RunKey, run_id: str, runs_dir: Path, war
     """``autocast run``'s arguments for one run of the sweep (after ``python -m deploy.cli``)."""
     return ["run", *key.run_flags(), "--json", "--out", str(runs_dir), "--run-id", run_id, "--scans", spec.scans,
             "--timeout-s", repr(spec.timeout_s), "--agent-timeout-s", repr(spec.agent_timeout_s),
-            "--log-level", "WARNING", *(["--no-warm-up"] if warm else [])]
+            "--log-level", "WARNING", *(["--no-warm-up"] if warm else []),
+            *([] if spec.json_mirror else ["--no-json-mirror"])]
 
 
 def limit_mcap(run_dir: Path, limit_mb: float) -> dict[str, Any]:
@@ -770,6 +778,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     nar.add_argument("--agent-timeout-s", metavar="S", help="wall time an agent may take for one tick before the "
                      "world declares it dead (default 10; raise it on a loaded machine)")
     nar.add_argument("--scans", help="LiDAR scans each run's recorder keeps: none (default) | ego | all")
+    nar.add_argument("--json-mirror", action="store_true",
+                     help="each run's MCAP gets the JSON mirror too, for Foxglove (default: without; "
+                          "`autocast export --foxglove` writes it for one run later)")
     nar.add_argument("--mcap-limit-mb", metavar="MB", help="delete a run's MCAP beyond this size (default 200)")
     ap.add_argument("--out", type=Path, help="the sweep directory (default runs/sweeps/<preset or file name>); "
                     "the same directory again resumes")

@@ -45,6 +45,7 @@ class RunConfig:
     lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.credentials)
     wait_for: tuple[str, ...] = ()  # participants besides the table's whose token the world waits for before tick 0
     shm_dir: str = ""  # one host's run: the scans and bundles go through this directory (protocol.shm)
+    json_mirror: bool = True  # the recorder also writes every message as JSON, for Foxglove (docs/viewing.md)
 
     @property
     def mcap_path(self) -> Path:
@@ -112,8 +113,9 @@ def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
             "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
             "mode": "realtime" if cfg.realtime else "lockstep", "signed": cfg.signing, "lock_down": cfg.lock_down}
     flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
+    mirror = ("--json-mirror",) if cfg.json_mirror else ()  # JSON beside msgpack: Foxglove reads it (docs/viewing.md)
     return (*_common(cfg, RECORDER), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level,
-            "--json-mirror", *flags)  # JSON beside msgpack: Foxglove and mcap tools read it (docs/viewing.md)
+            *mirror, *flags)
 
 
 def world_args(cfg: RunConfig) -> tuple[str, ...]:

@@ -337,6 +337,15 @@ def test_wait_for_reaches_the_world_and_only_the_world():
     assert not any("--wait-for" in spec.args for spec in table.processes(opts.run) if spec.name != table.WORLD)
 
 
+def test_the_recorder_writes_the_json_mirror_unless_told_not_to():
+    def recorder_args(*flags):
+        opts = options_from(parse_args(["--run-id", "w", *flags]), hub="tcp/127.0.0.1:1")
+        return next(spec.args for spec in table.processes(opts.run) if spec.name == table.RECORDER)
+
+    assert "--json-mirror" in recorder_args()
+    assert "--json-mirror" not in recorder_args("--no-json-mirror")
+
+
 @pytest.mark.parametrize("scheme", ["single", "lane", "emp", "agnostic", "autocast"])
 def test_the_world_waits_for_the_proxy_exactly_when_the_run_has_one(scheme):
     """Tick 0's messages go through the proxy: a world that ticked before the proxy had

@@ -15,7 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mcap.reader import make_reader
+
 from deploy import report, sweep
+from deploy.recorder import JSON_PREFIX
 from deploy.sweep import RunKey
 from tests.conftest import wait_until
 
@@ -72,11 +75,20 @@ def test_run_key_name_is_a_valid_run_id():
     ({"vehicle": [5]}, "vehicle: unknown field"),
     ({"timeout_s": 0}, "timeout_s: 0 is not a number > 0"),
     ({"scans": "most"}, "scans: 'most' is not one of"),
+    ({"json_mirror": "yes"}, "json_mirror: 'yes' is not true or false"),
 ])
 def test_bad_fields_are_named(over, message):
     with pytest.raises(sweep.SweepError) as err:
         spec(**over)
     assert str(err.value).startswith(message)
+
+
+def test_a_sweeps_runs_record_without_the_json_mirror_unless_asked():
+    key = sweep.expand(spec())[0]
+    assert "--no-json-mirror" in sweep.launcher_args(spec(), key, "r", Path("runs"), warm=True)
+    assert "--no-json-mirror" not in sweep.launcher_args(spec(json_mirror=True), key, "r", Path("runs"), warm=True)
+    args = sweep.parse_args(["--preset", "smoke", "--json-mirror"])
+    assert sweep.spec_from(sweep.narrowed(sweep.preset_values("smoke"), args), "smoke").json_mirror
 
 
 def test_duplicates_collapse_and_numbers_coerce():
@@ -328,6 +340,9 @@ def test_smoke_sweep_resume_and_report(tmp_path):
         assert r["cpu_s"] > 1.0  # the launcher's rusage includes every process of the run
     assert "[2/2]" in first.stderr
     assert json.loads((out / "plan.json").read_text())["spec"]["name"] == "smoke"
+    with open(out / "runs" / results[1]["run_id"] / "run.mcap", "rb") as f:  # no JSON mirror: half the recorder's CPU
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert any(t.endswith("/world/outcome") for t in topics) and not any(t.startswith(JSON_PREFIX) for t in topics)
     assert not leftovers(r["run_id"] for r in results)
 
     again = autocast("sweep", "--preset", "smoke", "--out", str(out))

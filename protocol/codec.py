@@ -547,13 +547,19 @@ def slots_constructor(cls: type) -> typing.Callable[..., Any]:
     setters = _slot_setters(cls)
     if setters is None:
         raise TypeError(f"{cls.__name__}: not a dataclass of init fields in its own slots without __post_init__")
-    env: dict[str, Any] = {"cls": cls, "new": object.__new__}
-    env.update({f"s{i}": setter for i, setter in enumerate(setters)})
+    env: dict[str, Any] = {"cls": cls}
     args = ", ".join(f"a{i}" for i in range(len(setters)))
-    lines = [f"def construct({args}):", "    out = new(cls)"] + \
-        [f"    s{i}(out, a{i})" for i in range(len(setters))] + ["    return out"]
+    lines = [f"def construct({args}):", *_construct_lines(env, setters)]
     exec("\n".join(lines), env)  # noqa: S102 - the source is built from the class's own field list
     return env["construct"]
+
+
+def _construct_lines(env: dict[str, Any], setters: list[typing.Callable[[Any, Any], None]]) -> list[str]:
+    """Generated lines that build ``cls`` (in ``env``) from ``a0``, ``a1``, ... through
+    ``setters`` (``_slot_setters``) and return it; ``env`` gets what they call."""
+    env["new"] = object.__new__
+    env.update({f"s{i}": setter for i, setter in enumerate(setters)})
+    return ["    out = new(cls)", *(f"    s{i}(out, a{i})" for i in range(len(setters))), "    return out"]
 
 
 def _slot_setters(cls: type) -> list[typing.Callable[[Any, Any], None]] | None:
@@ -596,9 +602,7 @@ def _record_converter(cls: type) -> Converter:
     if setters is not None:
         # what the frozen dataclass's __init__ does (object.__setattr__ of each field), through
         # each slot's own descriptor: ~40% less per record, ~180 receptions per data bundle
-        env["new"] = object.__new__
-        env.update({f"s{i}": setter for i, setter in enumerate(setters)})
-        lines += ["    out = new(cls)"] + [f"    s{i}(out, a{i})" for i in range(len(names))] + ["    return out"]
+        lines += _construct_lines(env, setters)
     else:
         # a record's own check (__post_init__) refuses as a field does: the path names where it sits
         lines += ["    try:",

@@ -379,8 +379,8 @@ class LaneDirections:
 @njit(cache=True)
 def _lane_segment(xy, vel, speed, a, d, length, half, cos_min):
     """``LaneDirections.snap``'s segment of each mover, -1 if none: one pass over the
-    (mover, segment) pairs instead of six (T, S) numpy arrays (~70 -> ~10 us a tick with
-    184 segments). The products are written as two-term sums; numpy's ``einsum`` and
+    (mover, segment) pairs instead of six (T, S) numpy arrays (48.6 -> 2.5 us for ten movers
+    and the left-turn map's 184 segments). The products are written as two-term sums; numpy's ``einsum`` and
     matrix product may round the last bit otherwise, which moves a decision only for a
     mover within ~1e-15 of a segment's end or of the heading bound."""
     best = np.full(xy.shape[0], -1, dtype=np.int64)

@@ -169,11 +169,32 @@ def rect_distance(a: np.ndarray, b: np.ndarray) -> float:
     return min(_corners_to_edges(a, b), _corners_to_edges(b, a))
 
 
+@njit(cache=True)
+def count_in_box(xy: np.ndarray, cx: float, cy: float, cs: float, sn: float, half_l: float, half_w: float) -> int:
+    """How many of the points ``xy`` (n, 2) lie in the box of centre (cx, cy), heading
+    cosine ``cs`` and sine ``sn`` and half sizes ``half_l`` x ``half_w``, edges included.
+    One pass in float64, in the order the numpy statements ``dx = x - cx``, ``u = cs * dx +
+    sn * dy``, ``v = -sn * dx + cs * dy`` compute it, so the same points count: ~10
+    temporary arrays fewer (the ego's fused view holds ~67 000 points at 40 vehicles)."""
+    n = 0
+    for i in range(xy.shape[0]):
+        dx = np.float64(xy[i, 0]) - cx
+        dy = np.float64(xy[i, 1]) - cy
+        u = cs * dx + sn * dy
+        v = -sn * dx + cs * dy
+        if abs(u) <= half_l and abs(v) <= half_w:
+            n += 1
+    return n
+
+
 def wrap_angle(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def warm_up() -> None:
-    """Compile (or load from the numba cache) ``rect_distance`` before the first tick."""
+    """Compile (or load from the numba cache) the judge's kernels before the first tick."""
     a = box_corners(0.0, 0.0, 0.0, 4.5, 1.8)
     rect_distance(a, a + 10.0)
+    fused = np.zeros((1, 2), dtype=np.float32)
+    fused.flags.writeable = False  # as the ego's report decodes it: numba types read-only arrays apart
+    count_in_box(fused, 0.0, 0.0, 1.0, 0.0, 2.5, 1.0)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from world_server.geometry import box_corners, project_s, rect_distance
+from world_server.geometry import box_corners, count_in_box, project_s, rect_distance
 from world_server.physics import Physics
 from world_server.scenarios import Scenario
 
@@ -84,11 +84,9 @@ class Judge:
         """How many of the world points ``xy`` lie on the collider's body (plus a margin)."""
         c = self.col_i
         spec = phys.specs[c]
-        dx, dy = xy[:, 0] - phys.x[c], xy[:, 1] - phys.y[c]
-        cs, sn = np.cos(phys.yaw[c]), np.sin(phys.yaw[c])
-        u, v = cs * dx + sn * dy, -sn * dx + cs * dy
-        return int(np.count_nonzero((np.abs(u) <= spec.length_m / 2 + margin_m) &
-                                    (np.abs(v) <= spec.width_m / 2 + margin_m)))
+        return count_in_box(np.asarray(xy), float(phys.x[c]),
+                            float(phys.y[c]), float(np.cos(phys.yaw[c])), float(np.sin(phys.yaw[c])),
+                            spec.length_m / 2 + margin_m, spec.width_m / 2 + margin_m)
 
     def observe_tick(self, phys: Physics, collider_points_in_ego_view: int,
                      collider_points_fused: int | None = None) -> None:

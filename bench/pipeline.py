@@ -8,6 +8,9 @@ median over agents), the agent's whole tick, the ego's (the vehicle that plans a
 path every tick) and the RTF. ``proc`` is the agent's whole-process CPU per tick (user
 + system, every thread: also the Zenoh threads that receive and decode its scan and
 bundles), measured with getrusage from the end of its first tick to the end of its last.
+Then each run's CPU per tick by kind of process (agents, world, proxy, recorder,
+launcher with its Zenoh hub: the outcome's ``cpu_ms_per_tick``) and how busy it kept
+the cores.
 
 Signing (docs/security.md): the largest density (``--sign-at``; 5 with ``--quick``)
 runs once more with ``--sign``; the table compares the two runs' agents, and
@@ -62,6 +65,28 @@ def _median_of(per_agent: list[dict], key: str) -> float:
     return float(np.median([a.get(key, 0.0) for a in per_agent])) if per_agent else 0.0
 
 
+MACHINE_ROLES = ("agents", "world", "proxy", "recorder", "launcher")
+
+
+def machine_table(rows: list[tuple]) -> list[str]:
+    """Each run's CPU per tick by kind of process (the outcome's ``cpu_ms_per_tick``:
+    from the first tick to each process's exit), the tick's wall time, and how busy
+    that kept the machine's cores."""
+    out = ["the whole machine: CPU ms per tick of each kind of process (first tick to its exit), the tick's wall "
+           "time, and all of it over the cores' time",
+           f"{'vehicles':>8} " + " ".join(f"{c:>8}" for c in (*MACHINE_ROLES, "all", "tick ms", "busy"))]
+    for n, _, _, outcome in rows:
+        cpu, ticks = outcome.get("cpu_ms_per_tick"), outcome.get("ticks") or 0
+        if not cpu or not ticks:
+            out.append(f"{n:>8} (no figures: the run's processes were not forked from its factory)")
+            continue
+        tick_ms = outcome["wall_s"] * 1e3 / ticks
+        busy = cpu["all"] / (tick_ms * outcome.get("cores", 1))
+        out.append(f"{n:>8} " + " ".join(f"{cpu.get(r, 0.0):>8.1f}" for r in (*MACHINE_ROLES, "all"))
+                   + f" {tick_ms:>8.1f} {busy:>7.0%}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="autocast bench pipeline", description=__doc__)
     ap.add_argument("--quick", action="store_true", help="5 and 10 vehicles, 3 s of sim time each")
@@ -103,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     print("CPU is the agent's main-thread time (its own cost, free of the waits for a core when more agents than "
           "cores run); link is encoding, publishing and decoding the channel's messages; agent_ms below is the "
           "median over agents of their median tick, plan_ms the ego's median planning")
+    print("\n".join(machine_table(rows)))
     costs = fixed_cost.run_all(densities, Path(args.out))
     print(f"the fixed cost of a run ({fixed_cost.SIM_S:g} s of sim time): start-up to the first tick, teardown from "
           "the outcome to the launcher's exit, wall; CPU of every process of the run before the first tick, after "

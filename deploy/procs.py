@@ -158,6 +158,78 @@ def exit_records(log_dir: Path, tag: str) -> dict[str, dict]:
     return out
 
 
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far, every thread of it, the ended
+    ones included (its CPU-time clock, nanoseconds; Linux: clock id ``~pid << 3 | 2``);
+    None where there is no such clock or no such process."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return time.clock_gettime((~pid << 3) | 2)
+    except OSError:  # gone, or not ours to read
+        return None
+
+
+def self_cpu_s() -> float:
+    """This process's user + system CPU seconds, every thread (its Zenoh hub's too)."""
+    return time.process_time()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity), else the machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+class RunCpu:
+    """What each process of a run spends while the run ticks: its CPU at the world's
+    first tick (``first_tick``, from its CPU-time clock) and at its exit (the factory's
+    ``wait4``), and the launcher's own at the first tick and at the outcome. Reported per
+    tick and by role (``per_tick_ms``) where every process was forked from the factory
+    on this host; ``None`` otherwise (``Popen``, whose exit CPU nobody collects)."""
+
+    def __init__(self, procs: "ProcessManager") -> None:
+        self.procs = procs
+        self._at_tick: dict[str, float] | None = None
+        self._launcher: list[float] = []
+
+    @property
+    def ticking(self) -> bool:
+        return self._at_tick is not None
+
+    def first_tick(self) -> None:
+        """At the world's first tick (once; later calls do nothing)."""
+        if self._at_tick is not None:
+            return
+        launcher = self_cpu_s()
+        at = {name: process_cpu_s(pid) for name, pid in self.procs.pids().items()}
+        self._launcher = [launcher]
+        self._at_tick = {name: cpu for name, cpu in at.items() if cpu is not None}
+
+    def outcome(self) -> None:
+        if len(self._launcher) == 1:
+            self._launcher.append(self_cpu_s())
+
+    def per_tick_ms(self, ticks: int) -> dict[str, float] | None:
+        """ms of CPU per tick by role (``agents``: every ``agent<vid>`` together; the
+        launcher: its Zenoh hub and itself) and ``all``, from the first tick to each
+        process's exit (the launcher: to the outcome); after every process has exited."""
+        if self._at_tick is None or len(self._launcher) != 2 or ticks < 1:
+            return None
+        by_role: dict[str, float] = {}
+        for name, (_, proc) in self.procs.procs.items():
+            end = getattr(proc, "cpu_s", None)
+            if end is None or name not in self._at_tick:
+                return None
+            role = "agents" if name.startswith("agent") else name
+            by_role[role] = by_role.get(role, 0.0) + end - self._at_tick[name]
+        by_role["launcher"] = self._launcher[1] - self._launcher[0]
+        by_role["all"] = sum(by_role.values())
+        return {role: round(cpu_s * 1e3 / ticks, 2) for role, cpu_s in by_role.items()}
+
+
 def has_argument(pid: int, word: str) -> bool:
     """Whether ``word`` is one of process ``pid``'s arguments as ``/proc/<pid>/cmdline``
     shows them: one string per argument, or, for a forked child whose arguments do not

@@ -36,10 +36,10 @@ import zenoh
 
 from deploy import factory as process_factory
 from deploy import table
-from deploy.procs import ProcessManager, ProcSpec, batch_scheduling, exit_records
+from deploy.procs import ProcessManager, ProcSpec, RunCpu, batch_scheduling, exit_records, usable_cores
 from protocol import faults, keys, shm
-from protocol.codec import decode, encode
-from protocol.messages import MapMsg, Mission, Outcome, Scan
+from protocol.codec import MalformedMessage, decode, encode
+from protocol.messages import MapMsg, Mission, Outcome, Scan, Tick
 from protocol.security import REJECTED_LINE
 from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
@@ -382,9 +382,22 @@ class Launcher:
         self._drops = DropCounter()
         self.procs = procs if procs is not None else ProcessManager(self.cfg.log_dir)
         self.specs = specs
+        self.cpu = RunCpu(self.procs) if procs is None else None  # local processes only
+
+    def _on_tick(self, sample: zenoh.Sample) -> None:
+        """The world's first tick: the processes' CPU so far (``RunCpu``), once."""
+        if self.cpu is None or self.cpu.ticking:
+            return
+        try:
+            decode(sample.payload.to_bytes(), Tick)
+        except MalformedMessage:  # anybody can put garbage on the key: only a real tick counts
+            return
+        self.cpu.first_tick()
 
     def _on_outcome(self, key: str, msg: Outcome) -> None:
         if self.outcome is None:
+            if self.cpu is not None:
+                self.cpu.outcome()
             self.outcome = msg
             self.outcome_after_stop = self.stop.is_set()
             self._got_outcome.set()
@@ -392,15 +405,18 @@ class Launcher:
     def run(self) -> RunResult:
         cfg = self.cfg
         specs = self.specs if self.specs is not None else table.processes(cfg)
-        sub = self.session.declare_subscriber(keys.world_outcome(cfg.run_id),
-                                              typed_handler(Outcome, self._on_outcome, self._drops))
+        subs = [self.session.declare_subscriber(keys.world_outcome(cfg.run_id),
+                                                typed_handler(Outcome, self._on_outcome, self._drops))]
+        if self.cpu is not None:
+            subs.append(self.session.declare_subscriber(keys.world_tick(cfg.run_id), self._on_tick))
         try:
             failure = self._start(specs)
             if failure is None:
                 failure = self._watch()
         finally:
             self._shutdown(specs)
-            sub.undeclare()
+            for sub in subs:
+                sub.undeclare()
         return self._result(failure)
 
     def _start(self, specs: list) -> str | None:
@@ -479,6 +495,10 @@ class Launcher:
                        "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line
                                      for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()},
                        "signed": self.cfg.signing, "lock_down": self.cfg.lock_down})
+        cpu = self.cpu.per_tick_ms(int(result.get("ticks") or 0)) if self.cpu is not None else None
+        if cpu is not None:  # what the run cost while it ticked: docs/running.md, "outcome.json"
+            result["cpu_ms_per_tick"] = cpu
+            result["cores"] = usable_cores()
         missed = exit_records(self.cfg.log_dir, shm.MISSED_LINE)
         if missed:  # real time only: an agent two ticks late missed the tick it was told of (protocol.shm)
             result["shm_missed"] = {name: {k: r[k] for k in ("total", "by_key")} for name, r in missed.items()}

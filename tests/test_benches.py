@@ -43,6 +43,14 @@ def test_each_bench_prints_its_headline_in_quick_mode(name, tmp_path):
         assert wc and float(wc.group(1)) > 0.0 and float(wc.group(2)) >= 1.0, res.stdout[-500:]
     if name == "pipeline":
         assert figures["rtf5"] > 0.0 and figures["agent_ms"] > 0.0
+        lines = res.stdout.splitlines()
+        at = next(i for i, line in enumerate(lines) if line.startswith("the whole machine:"))
+        assert lines[at + 1].split() == ["vehicles", "agents", "world", "proxy", "recorder", "launcher", "all",
+                                         "tick", "ms", "busy"]
+        for row, density in zip(lines[at + 2:at + 5], ("5", "10", "5+sign")):  # each run's figures, not a blank
+            cells = row.split()
+            assert cells[0] == density and len(cells) == 9 and cells[-1].endswith("%"), row
+            assert float(cells[6]) == pytest.approx(sum(map(float, cells[1:6])), abs=0.3), row  # the parts add up
 
 
 def test_the_zenoh_sample_bench_measures_a_subscriber_through_a_hub():

@@ -296,3 +296,28 @@ def test_a_batch_slice_out_of_the_kernels_range_is_refused_before_anything_is_se
         procs.batch_scheduling(slice_ms=0.0)
     with pytest.raises(ValueError, match="slice_ms"):
         procs.batch_scheduling(slice_ms=250.0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a process's CPU-time clock by pid is Linux's")
+def test_process_cpu_s_reads_another_processs_cpu_its_ended_threads_included():
+    """A child burns CPU in a thread that ends, then in its main thread, prints its own
+    process_time and sleeps: read from outside, its clock holds at least that much (the
+    ended thread's share included) and not much more (it sleeps). Once it is reaped,
+    there is no clock to read."""
+    burn = ("import threading, time\n"
+            "def spin(s):\n"
+            "    t = time.thread_time()\n"
+            "    while time.thread_time() - t < s: pass\n"
+            "th = threading.Thread(target=spin, args=(0.15,)); th.start(); th.join()\n"
+            "spin(0.1)\n"
+            "print(time.process_time(), flush=True)\n"
+            "time.sleep(120)\n")
+    child = subprocess.Popen([sys.executable, "-c", burn], stdout=subprocess.PIPE, text=True)
+    try:
+        own = float(child.stdout.readline())
+        got = procs.process_cpu_s(child.pid)
+        assert own >= 0.25 and own <= got <= own + 0.5, (own, got)
+    finally:
+        child.kill()
+        child.wait()
+    assert procs.process_cpu_s(child.pid) is None

@@ -42,7 +42,8 @@ from world_server.sim import Simulation
 
 FLAGS = ("--scenario", "left_turn", "--vehicles", "3", "--scheme", "autocast", "--duration", "2.5", "--seed", "2",
          "--sign")
-UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped", "rejected")
+UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "malformed_dropped", "rejected",
+            "cpu_ms_per_tick")
 LATE_S = "2.0"  # the peer's injected delay past the moment a world that did not wait for it would start
 INSIDER, VICTIM = 1, 0  # the compromised vehicle (the occluder truck: it sends objects), the one it claims to be (the ego)
 

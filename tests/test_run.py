@@ -24,7 +24,7 @@ from protocol.codec import decode
 from protocol.messages import Outcome, Scan, Tick
 
 OUTCOMES = ("safe", "near_miss", "crash", "deadlock")
-UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap")  # differ between identical runs
+UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "cpu_ms_per_tick")  # differ between identical runs
 
 
 class Launch:
@@ -146,6 +146,17 @@ def test_each_agent_reports_the_cpu_time_of_its_stages(scenario_runs):
         assert {"perception", "planning", "control"} <= set(names) and all(x >= 0.0 for x in stages), t
         assert vid != 0 or "fusion" in names, t
         assert t["perception_cpu_mean"] > 0.0 and 0.0 < sum(stages) <= t["cpu_mean"] + 5e-3, t  # means rounded to 1 us
+
+
+def test_the_outcome_says_what_each_kind_of_process_spent_a_tick(scenario_runs):
+    """``cpu_ms_per_tick`` (deploy.procs.RunCpu): each kind of process of the run, the
+    agents together, and the whole; the parts add up to the whole."""
+    r = scenario_runs("left_turn").result
+    cpu = r["cpu_ms_per_tick"]
+    assert set(cpu) == {"recorder", "world", "agents", "launcher", "all"}, cpu  # single: no channel proxy
+    assert all(cpu[k] > 0.0 for k in ("recorder", "world", "agents")) and cpu["launcher"] >= 0.0, cpu
+    assert cpu["all"] == pytest.approx(sum(v for k, v in cpu.items() if k != "all"), abs=0.03), cpu  # each rounded
+    assert r["cores"] >= 1
 
 
 def test_the_same_seed_gives_the_same_outcome(scenario_runs, launches):

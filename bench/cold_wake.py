@@ -1,6 +1,6 @@
 """What a pause costs the work that follows it, in CPU.
 
-A live agent stage costs ~1.4x the same stage in a replay of its log (docs/architecture.md,
+A live agent stage costs ~1.4x the same stage in a replay of its log (docs/performance.md,
 "Why live stages cost more than replayed ones"): live, each agent waits 50-150 ms between
 its stages while the other processes run, or while the cores halt. This bench times a
 fixed piece of Python and numpy work (about what an agent does in 0.3 ms: dict look-ups,

@@ -10,7 +10,7 @@ for a core).
 The run: ``autocast run --scenario SCENARIO --vehicles N --scheme SCHEME --duration D
 --delta 3 --scans none``. A phase of the interval is as long as the CPU every process
 spends in it over the machine's cores, plus what runs in no phase: compare the sums with the tick (docs/
-architecture.md, "Where a tick's wall time goes"). Linux or any system with one
+performance.md, "Where a tick's wall time goes"). Linux or any system with one
 monotonic clock for all processes; one host only.
 """
 

@@ -270,7 +270,7 @@ def batch_scheduling(batch: bool = True, slice_ms: float = BATCH_SLICE_MS) -> bo
     kernels ignore it. The default (1.4 ms on this project's 2-core machines, with Linux
     6.18) is about one agent stage, so half the stages were cut in two, each half resumed
     on cold caches. At 40 vehicles on 2 cores the policy raised the real-time factor 2%,
-    the slice 3% more (docs/architecture.md). No privilege is needed: neither raises a
+    the slice 3% more (docs/performance.md). No privilege is needed: neither raises a
     priority, they only give up preempting on wake-up and being preempted at the end of
     the default slice. A real-time run wants the opposite: a late wake-up is a late
     command."""

@@ -224,7 +224,7 @@ class StallDump:
     faulthandler handles the signal in C, without the GIL, so a tick stuck in a kernel
     that holds it still dumps. Not ``faulthandler.dump_traceback_later``: it starts and
     joins a watchdog thread each time, which costs far more than the two timer calls
-    (docs/architecture.md, "What a tick costs around the step"). Where there is no
+    (docs/performance.md, "What a tick costs around the step"). Where there is no
     ``SIGALRM`` (Windows) it does nothing."""
 
     def __init__(self, limit_s: float, file: TextIO | None = None) -> None:

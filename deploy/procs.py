@@ -170,11 +170,6 @@ def process_cpu_s(pid: int) -> float | None:
         return None
 
 
-def self_cpu_s() -> float:
-    """This process's user + system CPU seconds, every thread (its Zenoh hub's too)."""
-    return time.process_time()
-
-
 def usable_cores() -> int:
     """The cores this process may run on (its affinity), else the machine's."""
     try:
@@ -203,14 +198,14 @@ class RunCpu:
         """At the world's first tick (once; later calls do nothing)."""
         if self._at_tick is not None:
             return
-        launcher = self_cpu_s()
+        launcher = time.process_time()  # every thread of the launcher, its Zenoh hub's too
         at = {name: process_cpu_s(pid) for name, pid in self.procs.pids().items()}
         self._launcher = [launcher]
         self._at_tick = {name: cpu for name, cpu in at.items() if cpu is not None}
 
     def outcome(self) -> None:
         if len(self._launcher) == 1:
-            self._launcher.append(self_cpu_s())
+            self._launcher.append(time.process_time())
 
     def per_tick_ms(self, ticks: int) -> dict[str, float] | None:
         """ms of CPU per tick by role (``agents``: every ``agent<vid>`` together; the

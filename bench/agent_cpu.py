@@ -3,7 +3,7 @@ any two versions of the code compare the same way (back to back).
 
 The agents' own exit figures (``proc_cpu``, what ``autocast bench pipeline`` reports)
 exist only in versions that print them. This bench reads every agent process's user +
-system CPU (its threads' ``/proc`` schedstat, as ``bench.fixed_cost`` does) twice, ``--window`` seconds apart, starting
+system CPU (its CPU-time clock: ``deploy.procs.process_cpu_s``) twice, ``--window`` seconds apart, starting
 ``--settle`` seconds after the world's first tick (its log line ``N of N agents up;
 starting``), and divides by the ticks in that window (the window times the run's
 lock-step real-time factor over 0.1 s). The run: ``autocast run --scenario left_turn
@@ -22,7 +22,6 @@ Linux only (``/proc``).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import secrets
@@ -33,8 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.fixed_cost import process_cpu_s
-from deploy.procs import has_argument
+from deploy.procs import has_argument, process_cpu_s
 
 HERE = Path(__file__).resolve().parent.parent  # this checkout
 UP_LINE = "agents up; starting"
@@ -55,8 +53,9 @@ def _agent_cpu_s(run_id: str) -> dict[int, float]:
     out = {}
     for pid in map(int, filter(str.isdigit, os.listdir("/proc"))):
         if has_argument(pid, "vehicle_agent") and has_argument(pid, run_id):
-            with contextlib.suppress(OSError):  # gone
-                out[pid] = process_cpu_s(pid)
+            cpu = process_cpu_s(pid)
+            if cpu is not None:  # not gone meanwhile
+                out[pid] = cpu
     return out
 
 

@@ -6,8 +6,8 @@ line ``N of N agents up; starting``); teardown from the world's outcome (the fir
 tick plus the ticks' wall time the world reports) to the launcher's exit; CPU is the
 whole run's (the launcher and every process it started, reaped: ``wait4``), and the
 part of it spent before the first tick and after the world printed its outcome
-(``/proc/<pid>/task/*/schedstat`` of the run's processes, sampled at those two log
-lines). Two ways to launch:
+(each of the run's processes' CPU-time clock and its reaped children's, sampled at
+those two log lines: ``deploy.procs.process_cpu_s``). Two ways to launch:
 
 - ``cold``: ``autocast run`` as a user types it, a new interpreter that imports the
   stack and warms the numba caches before it starts anything;
@@ -40,6 +40,8 @@ import time
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+
+from deploy.procs import process_cpu_s
 
 SIM_S = 0.5
 _UP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) world INFO \d+ of \d+ agents up; starting$", re.M)
@@ -137,28 +139,13 @@ class _Sampler(threading.Thread):
                 text = ""
             if self.cpu_up_s is None and "agents up; starting" in text:
                 pids = _tree(self.root)
-                self.cpu_up_s = sum(process_cpu_s(p) for p in pids)
+                self.cpu_up_s = sum(process_cpu_s(p, reaped_children=True) or 0.0 for p in pids)
                 if self.pss:
                     self.pss_mib = sum(_pss_kib(p) for p in pids) / 1024
             if self.cpu_up_s is not None and re.search(r"^outcome: ", text, re.M):
-                self.cpu_outcome_s = sum(process_cpu_s(p) for p in _tree(self.root))
+                self.cpu_outcome_s = sum(process_cpu_s(p, reaped_children=True) or 0.0 for p in _tree(self.root))
                 return
             time.sleep(0.01)
-
-
-def process_cpu_s(pid: int) -> float:
-    """User + system time of ``pid``'s threads (ns precision) and of its reaped children."""
-    total = 0.0
-    try:
-        for task in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{task}/schedstat") as f:
-                total += int(f.read().split()[0]) / 1e9
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        total += (int(fields[13]) + int(fields[14])) / os.sysconf("SC_CLK_TCK")  # cutime, cstime
-    except (OSError, ValueError, IndexError):
-        pass
-    return total
 
 
 def _tree(root: int) -> list[int]:

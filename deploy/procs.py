@@ -158,16 +158,22 @@ def exit_records(log_dir: Path, tag: str) -> dict[str, dict]:
     return out
 
 
-def process_cpu_s(pid: int) -> float | None:
+def process_cpu_s(pid: int, reaped_children: bool = False) -> float | None:
     """User + system CPU seconds of process ``pid`` so far, every thread of it, the ended
-    ones included (its CPU-time clock, nanoseconds; Linux: clock id ``~pid << 3 | 2``);
-    None where there is no such clock or no such process."""
+    ones included (its CPU-time clock, nanoseconds; Linux: clock id ``~pid << 3 | 2``),
+    and with ``reaped_children`` those of the children it has waited for (``/proc``'s
+    cutime and cstime, in clock ticks); None where there is no such clock or process."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        return time.clock_gettime((~pid << 3) | 2)
-    except OSError:  # gone, or not ours to read
+        total = time.clock_gettime((~pid << 3) | 2)
+        if reaped_children:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            total += (int(fields[13]) + int(fields[14])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):  # gone, or not ours to read
         return None
+    return total
 
 
 def usable_cores() -> int:

@@ -193,7 +193,12 @@ class ShmPublisher:
     memory and its ``InShm`` notice on the twin key (a payload that cannot goes on the
     twin itself: the readers listen there only), and on the key itself only while some
     subscriber listens there (a recorder keeping it, a user's logger: Zenoh's matching
-    status says so). Without one, on the key, as ``protocol.session.reliable_publisher``."""
+    status says so). Without one, on the key, as ``protocol.session.reliable_publisher``.
+
+    Zenoh tells a new publisher of the subscribers already there some time after it is
+    declared, in order with the rest of what comes from the hub: declare it before the
+    subscribers whose news lets its first put go (the world's: before the liveliness
+    subscribers that start tick 0)."""
 
     def __init__(self, session: zenoh.Session, key: str, directory: Path | str | None) -> None:
         block = zenoh.CongestionControl.BLOCK

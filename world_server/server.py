@@ -107,6 +107,15 @@ class WorldServer:
             if vid in missions:
                 query.reply(keys.mission(run, vid), missions[vid])
 
+        # the publishers first: what Zenoh tells a new publisher of its subscribers comes on
+        # the hub's link before the tokens the liveliness subscribers below ask for, so by
+        # the time those let tick 0 go, a scan's ShmPublisher knows whether anyone listens
+        # on its key (a recorder keeping scans); declared after them, tick 0's scans were
+        # sometimes not recorded when every agent was up before the world
+        self._tick_pub = reliable_publisher(s, keys.world_tick(run))
+        self._truth_pub = reliable_publisher(s, keys.world_truth(run))
+        self._scan_pubs = {vid: ShmPublisher(s, keys.scan(run, vid), self.shm_dir) for vid in self._expected}
+        self._entities += [self._tick_pub, self._truth_pub, *self._scan_pubs.values()]
         self._entities += [
             s.declare_queryable(keys.world_map(run), on_map),
             s.declare_queryable(keys.mission(run, "*"), on_mission),
@@ -116,10 +125,6 @@ class WorldServer:
         ]
         self._entities += [s.liveliness().declare_subscriber(key, self._on_awaited, history=True)
                            for key in self._awaited]
-        self._tick_pub = reliable_publisher(s, keys.world_tick(run))
-        self._truth_pub = reliable_publisher(s, keys.world_truth(run))
-        self._scan_pubs = {vid: ShmPublisher(s, keys.scan(run, vid), self.shm_dir) for vid in self._expected}
-        self._entities += [self._tick_pub, self._truth_pub, *self._scan_pubs.values()]
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:

@@ -383,6 +383,7 @@ class Launcher:
         self.procs = procs if procs is not None else ProcessManager(self.cfg.log_dir)
         self.specs = specs
         self.cpu = RunCpu(self.procs) if procs is None else None  # local processes only
+        self._subs: list = []  # the launcher's own (_listen)
 
     def _on_tick(self, sample: zenoh.Sample) -> None:
         """The world's first tick: the processes' CPU so far (``RunCpu``), once."""
@@ -405,19 +406,27 @@ class Launcher:
     def run(self) -> RunResult:
         cfg = self.cfg
         specs = self.specs if self.specs is not None else table.processes(cfg)
-        subs = [self.session.declare_subscriber(keys.world_outcome(cfg.run_id),
-                                                typed_handler(Outcome, self._on_outcome, self._drops))]
-        if self.cpu is not None:
-            subs.append(self.session.declare_subscriber(keys.world_tick(cfg.run_id), self._on_tick))
         try:
             failure = self._start(specs)
             if failure is None:
                 failure = self._watch()
         finally:
             self._shutdown(specs)
-            for sub in subs:
+            for sub in self._subs:
                 sub.undeclare()
         return self._result(failure)
+
+    def _listen(self) -> None:
+        """The launcher's own subscribers (the world's outcome; its first tick, for
+        ``RunCpu``): declared once the recorder is ready, not before, since
+        ``wait_recorder_ready`` asks the hub whether anybody subscribes to those keys and a
+        subscriber of the launcher's would answer for the recorder; and before the world
+        starts, which publishes on them."""
+        run = self.cfg.run_id
+        self._subs.append(self.session.declare_subscriber(keys.world_outcome(run),
+                                                          typed_handler(Outcome, self._on_outcome, self._drops)))
+        if self.cpu is not None:
+            self._subs.append(self.session.declare_subscriber(keys.world_tick(run), self._on_tick))
 
     def _start(self, specs: list) -> str | None:
         recorder, rest = specs[0], specs[1:]
@@ -426,6 +435,7 @@ class Launcher:
         self.procs.start(recorder)
         if not wait_recorder_ready(self.session, self.cfg.run_id, self.procs, RECORDER_READY_TIMEOUT_S, self.stop):
             return None if self.stop.is_set() else "the recorder did not come up (see logs/recorder.log)"
+        self._listen()
         for spec in rest:
             if self.stop.is_set():
                 return None

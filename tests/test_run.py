@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -15,10 +16,11 @@ import pytest
 from mcap.reader import make_reader
 
 from deploy import table
-from deploy.procs import BATCH_SLICE_MS, scheduling
+from deploy.procs import BATCH_SLICE_MS, ProcSpec, scheduling
 from deploy.run import main as run_main
-from deploy.run import options_from, parse_args
-from tests.conftest import batch_allowed, reports_slices
+from deploy.run import Launcher, options_from, parse_args
+from protocol.session import ZenohArgs, session_scope
+from tests.conftest import batch_allowed, free_port, reports_slices
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Outcome, Scan, Tick
@@ -346,6 +348,21 @@ def test_wait_for_reaches_the_world_and_only_the_world():
     world = table.world_args(opts.run)
     assert world[world.index("--wait-for"):][:3] == ("--wait-for", "logger", "peer")
     assert not any("--wait-for" in spec.args for spec in table.processes(opts.run) if spec.name != table.WORLD)
+
+
+def test_the_launcher_waits_for_the_recorder_not_for_its_own_subscribers(tmp_path):
+    """The launcher starts the world once the hub says somebody subscribes to the world's
+    tick and outcome (``wait_recorder_ready``): the recorder, never the launcher's own
+    subscribers to those keys. A recorder that exits at once, subscribed to nothing,
+    fails the run as one that did not come up. (When the launcher subscribed first, it
+    answered for the recorder, and a run's first ticks could go unrecorded.)"""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    opts = options_from(parse_args(["--out", str(tmp_path), "--run-id", "r", "--timeout-s", "60"]), hub=hub)
+    opts.run.log_dir.mkdir(parents=True)
+    gone = ProcSpec(table.RECORDER, "deploy.recorder", ("--no-such-flag",))  # argparse refuses it: exit 2
+    with session_scope(ZenohArgs(listen=(hub,)), wait_s=0.0) as session:
+        res = Launcher(opts, session, threading.Event(), specs=[gone]).run()
+    assert res.result is None and "the recorder did not come up" in res.failure, res
 
 
 def test_the_recorder_writes_the_json_mirror_unless_told_not_to():

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -41,6 +42,34 @@ def test_the_threads_are_read_at_the_first_tick_and_once_the_loop_ends():
     assert n == 1
     main_ms = sum(threads.values()) * n  # the main thread carries the process's name, like any of ours
     assert between * 1e3 <= main_ms < (between + after) * 1e3
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not Path("/proc/self/task").exists(),
+                    reason="per-thread clocks by thread id: Linux")
+def test_a_thread_that_ends_mid_run_takes_none_of_the_others_cpu():
+    """A thread of the process's name (as Python's threads are) that burned CPU before
+    the first tick and ends before the loop does: the name's figure is what the threads
+    spent meanwhile, not less by what the ended one had spent (it was, once in a while,
+    in a test worker whose threads come and go)."""
+    burned, end = threading.Event(), threading.Event()
+
+    def helper() -> None:
+        _burn(0.05)
+        burned.set()
+        end.wait()
+
+    t = threading.Thread(target=helper)
+    t.start()
+    burned.wait()
+    proc = ProcessCpu()
+    proc.tick_done()  # the helper's 0.05 s on its clock, read
+    end.set()
+    t.join()
+    between = _burn(0.02)
+    proc.tick_done()
+    proc.loop_done()
+    main_ms = sum(v for k, v in proc.summary().items() if k.startswith("thread_"))
+    assert between * 1e3 <= main_ms < (between + 0.05) * 1e3
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGALRM"), reason="SIGALRM: POSIX")

@@ -263,8 +263,8 @@ class ProcessCpu:
         self.first: tuple[float, float, float, int] | None = None
         self.last: tuple[float, float, float, int] | None = None
         self.thread_names: dict[int, str] = {}
-        self.threads_first: dict[str, float] = {}
-        self.threads_last: dict[str, float] = {}
+        self.threads_first: dict[int, float] = {}
+        self.threads_last: dict[int, float] = {}
         self.gc_s = self.gc_first = self.gc_last = 0.0  # the cyclic garbage collector's CPU time, any thread
         self._gc_started: dict[int, float] = {}
         gc.callbacks.append(self._on_gc)
@@ -292,17 +292,16 @@ class ProcessCpu:
                 continue
         return out
 
-    def _threads(self) -> dict[str, float]:
-        """CPU seconds per thread name (threads of one name added up) of the threads
-        named at the first tick, read from each thread's CPU-time clock (Linux: clock id
-        ``~tid << 3 | 6``; nanoseconds, where /proc's stat counts 10 ms clock ticks)."""
-        out: dict[str, float] = {}
-        for tid, name in self.thread_names.items():
+    def _threads(self) -> dict[int, float]:
+        """CPU seconds of each thread named at the first tick that still runs, by thread
+        id, read from its CPU-time clock (Linux: clock id ``~tid << 3 | 6``; nanoseconds,
+        where /proc's stat counts 10 ms clock ticks)."""
+        out: dict[int, float] = {}
+        for tid in self.thread_names:
             try:
-                cpu_s = time.clock_gettime((~tid << 3) | 6)
+                out[tid] = time.clock_gettime((~tid << 3) | 6)
             except OSError:  # the thread ended
                 continue
-            out[name] = out.get(name, 0.0) + cpu_s
         return out
 
     def tick_done(self) -> None:
@@ -340,8 +339,12 @@ class ProcessCpu:
                "proc_sys_cpu": round((self.last[2] - self.first[2]) * 1e3 / n, 3),
                "proc_minflt": round((self.last[3] - self.first[3]) / n, 1),
                "proc_gc_cpu": round((self.gc_last - self.gc_first) * 1e3 / n, 3), "proc_ticks": n}
-        for name, cpu_s in sorted(self.threads_last.items()):
-            out[f"thread_{name}_cpu"] = round((cpu_s - self.threads_first.get(name, 0.0)) * 1e3 / n, 3)
+        by_name: dict[str, float] = {}  # threads of one name added up; one that ended meanwhile is left out
+        for tid, cpu_s in self.threads_last.items():
+            name = self.thread_names[tid]
+            by_name[name] = by_name.get(name, 0.0) + cpu_s - self.threads_first.get(tid, cpu_s)
+        for name, cpu_s in sorted(by_name.items()):
+            out[f"thread_{name}_cpu"] = round(cpu_s * 1e3 / n, 3)
         return out
 
 

@@ -29,6 +29,7 @@ STEP_S = 0.25
 SAFETY_M = 1.0
 WINDOW_S = 2.0  # "could collide": k's timing may be off by this much either way (the paper's delta spans +-2 s)
 _MARGIN_RAD = 1e-9  # angles here are exact to ~1e-15 rad: intervals this far apart share no ray
+_COVER_RAD = 1e-7  # _hides: rays this far inside an occluder's extent and from its corners
 _UNKNOWN, _SKIP, _KNOWN = 0, 1, 2  # an occluder for the viewer at hand (_visible_share)
 
 
@@ -70,29 +71,107 @@ def _inside(px, py, corners):
 def _quad_distance(px, py, quad):
     """Distance from (px, py) to the nearest point of ``quad``'s edges, a little less
     (1e-9 relative and absolute, far above rounding): a lower bound of where any ray
-    from (px, py) can enter the quad by ``_ray_rect``."""
+    from (px, py) can enter the quad by ``_ray_rect``.
+
+    The nearest of the edges' points by their squared distances, and ``np.hypot`` of it
+    only (of every edge within 1e-12 of it): the squares are exact to a few ulps, so an
+    edge clear of the nearest by that margin has the larger hypot too. Distances outside
+    [1e-50, 1e50], or NaN, take ``np.hypot`` of every edge."""
+    near2, plain = np.inf, False
+    for e in range(4):
+        gx, gy = _edge_offset(px, py, quad, e)
+        d2 = gx * gx + gy * gy
+        if not (1e-100 <= d2 <= 1e100):
+            plain = True
+        near2 = min(near2, d2)
     best = np.inf
     for e in range(4):
-        ax, ay = quad[e, 0], quad[e, 1]
-        ex, ey = quad[(e + 1) % 4, 0] - ax, quad[(e + 1) % 4, 1] - ay
-        len2 = ex * ex + ey * ey
-        t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
-        best = min(best, np.hypot(ax + t * ex - px, ay + t * ey - py))
+        gx, gy = _edge_offset(px, py, quad, e)
+        if not plain and gx * gx + gy * gy > near2 * (1.0 + 1e-12):
+            continue
+        best = min(best, np.hypot(gx, gy))
     return best * (1.0 - 1e-9) - 1e-9
+
+
+@njit(cache=True)
+def _edge_offset(px, py, quad, e):
+    """From (px, py) to the nearest point of ``quad``'s edge ``e``."""
+    ax, ay = quad[e, 0], quad[e, 1]
+    ex, ey = quad[(e + 1) % 4, 0] - ax, quad[(e + 1) % 4, 1] - ay
+    len2 = ex * ex + ey * ey
+    t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
+    return ax + t * ex - px, ay + t * ey - py
+
+
+@njit(cache=True)
+def _farthest_corner(px, py, quad):
+    """``max`` of ``np.hypot`` from (px, py) to ``quad``'s corners, taken of the corners
+    within 1e-12 of the farthest by their squared distances only (as ``_quad_distance``)."""
+    far2, plain = 0.0, False
+    for c in range(4):
+        dx, dy = quad[c, 0] - px, quad[c, 1] - py
+        d2 = dx * dx + dy * dy
+        if not (1e-100 <= d2 <= 1e100):
+            plain = True
+        far2 = max(far2, d2)
+    far = 0.0
+    for c in range(4):
+        dx, dy = quad[c, 0] - px, quad[c, 1] - py
+        if not plain and dx * dx + dy * dy < far2 * (1.0 - 1e-12):
+            continue
+        far = max(far, np.hypot(dx, dy))
+    return far
+
+
+@njit(cache=True)
+def _wrap(a):
+    """``(a + np.pi) % (2 * np.pi) - np.pi``, the same value: where a + pi lies in
+    [0, 2 pi) the remainder is a + pi itself (fmod is exact; -0.0 and 0.0 give the same
+    -pi), and is not taken (it cost more than an arctangent)."""
+    x = a + np.pi
+    if 0.0 <= x < 2 * np.pi:
+        return x - np.pi
+    return x % (2 * np.pi) - np.pi
 
 
 @njit(cache=True)
 def _occluder_extent(px, py, quad):
     """The angular extent [lo, hi] (rad, world) of ``quad`` seen from (px, py)."""
+    base, lo, hi = _extent(px, py, quad)
+    return lo + base, hi + base
+
+
+@njit(cache=True)
+def _extent(px, py, quad):
+    """The direction (rad, world) from (px, py) to ``quad``'s centre, and the lowest and
+    highest of its corners' directions relative to it."""
     cx = 0.25 * (quad[0, 0] + quad[1, 0] + quad[2, 0] + quad[3, 0])
     cy = 0.25 * (quad[0, 1] + quad[1, 1] + quad[2, 1] + quad[3, 1])
     base = np.arctan2(cy - py, cx - px)
     lo, hi = np.inf, -np.inf
     for c in range(4):
-        a = np.arctan2(quad[c, 1] - py, quad[c, 0] - px) - base
-        a = (a + np.pi) % (2 * np.pi) - np.pi
+        a = _wrap(np.arctan2(quad[c, 1] - py, quad[c, 0] - px) - base)
         lo, hi = min(lo, a), max(hi, a)
-    return lo + base, hi + base
+    return base, lo, hi
+
+
+@njit(cache=True)
+def _same_quads(targets, occluders, target_as_occluder):
+    """For each occluder, the target it is (``target_as_occluder``, with the same corners
+    bit for bit), or -1: their angular extents are then one computation."""
+    occ_target = np.full(occluders.shape[0], -1, dtype=np.int64)
+    for k in range(targets.shape[0]):
+        o = target_as_occluder[k]
+        if o < 0 or o >= occluders.shape[0]:
+            continue
+        same = True
+        for c in range(4):
+            for d in range(2):
+                if not targets[k, c, d] == occluders[o, c, d]:
+                    same = False
+        if same:
+            occ_target[o] = k
+    return occ_target
 
 
 @njit(cache=True)
@@ -106,7 +185,13 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
     whose nearest point is no nearer than the ray's hit (``occ_near >= t_target``), so
     it would skip that one on every ray. The nearest point of its edges, not its nearest
     corner: a long wall beside the viewer has its corners far away and its middle near,
-    and was skipped so, the objects behind it counted as seen through it."""
+    and was skipped so, the objects behind it counted as seen through it.
+
+    A target's angular extent is worked out once per viewer, for its rays and for it as
+    an occluder (``_same_quads``; at 40 vehicles a third of the arctangents). A target
+    no occluder's extent meets sees every ray through: its rays are not cast. Of the
+    candidate occluders the one that blocked the last ray is tried first (a ray is
+    blocked by any of them, whatever the order)."""
     J, K, O = viewers.shape[0], targets.shape[0], occluders.shape[0]
     share = np.zeros((J, K))
     occ_lo = np.empty(O)
@@ -114,12 +199,18 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
     occ_near = np.empty(O)
     state = np.zeros(O, dtype=np.int8)  # _UNKNOWN, _SKIP or _KNOWN, per viewer
     cand = np.empty(O, dtype=np.int64)
+    occ_target = _same_quads(targets, occluders, target_as_occluder)
+    ext_known = np.zeros(K, dtype=np.bool_)  # per viewer: each target's _extent
+    ext_base = np.empty(K)
+    ext_lo = np.empty(K)
+    ext_hi = np.empty(K)
     for j in range(J):
         px, py = viewers[j, 0], viewers[j, 1]
         own = target_as_occluder[self_target[j]] if self_target[j] >= 0 else -1
         for o in range(O):
             state[o] = _UNKNOWN
             occ_near[o] = _quad_distance(px, py, occluders[o])
+        ext_known[:] = False
         for k in range(K):
             tk = targets[k]
             cx = 0.25 * (tk[0, 0] + tk[1, 0] + tk[2, 0] + tk[3, 0])
@@ -127,15 +218,13 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
             if k == self_target[j] or _inside(px, py, tk):
                 share[j, k] = 1.0  # j itself: nothing to send it
                 continue
-            if np.hypot(cx - px, cy - py) > ranges[j]:
+            if _farther(cx - px, cy - py, ranges[j]):
                 continue
-            base = np.arctan2(cy - py, cx - px)
-            lo, hi, far = np.inf, -np.inf, 0.0
-            for c in range(4):
-                a = np.arctan2(tk[c, 1] - py, tk[c, 0] - px) - base
-                a = (a + np.pi) % (2 * np.pi) - np.pi
-                lo, hi = min(lo, a), max(hi, a)
-                far = max(far, np.hypot(tk[c, 0] - px, tk[c, 1] - py))
+            if not ext_known[k]:
+                ext_base[k], ext_lo[k], ext_hi[k] = _extent(px, py, tk)
+                ext_known[k] = True
+            base, lo, hi = ext_base[k], ext_lo[k], ext_hi[k]
+            far = _farthest_corner(px, py, tk)
             # a ray meets the target no farther than its farthest corner (a convex quad)
             reach = far * (1.0 + 1e-9) + 1e-9
             # the occluders whose angular extent meets the target's (with a margin far above
@@ -151,18 +240,41 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
                         state[o] = _SKIP
                     else:
                         state[o] = _KNOWN
-                        occ_lo[o], occ_hi[o] = _occluder_extent(px, py, occluders[o])
+                        t = occ_target[o]
+                        if t < 0:
+                            occ_lo[o], occ_hi[o] = _occluder_extent(px, py, occluders[o])
+                        else:
+                            if not ext_known[t]:
+                                ext_base[t], ext_lo[t], ext_hi[t] = _extent(px, py, targets[t])
+                                ext_known[t] = True
+                            occ_lo[o], occ_hi[o] = ext_lo[t] + ext_base[t], ext_hi[t] + ext_base[t]
                 if state[o] == _SKIP:
                     continue
                 span = occ_hi[o] - occ_lo[o]
                 if width + _MARGIN_RAD < np.pi and span + _MARGIN_RAD < np.pi:
-                    gap = (base + lo - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    gap = _wrap(base + lo - occ_lo[o])
                     if gap < -width - _MARGIN_RAD or gap > span + _MARGIN_RAD:
                         continue
                 cand[n_cand] = o
                 n_cand += 1
-            seen = 0
-            for r in range(n_rays):
+            cast = n_cand > 0
+            if not cast:  # every ray cast gets through
+                seen = n_rays if need <= 0 else min(need, n_rays)
+            else:
+                seen = 0
+                near2 = np.inf  # the target's nearest point, squared
+                for e in range(4):
+                    gx, gy = _edge_offset(px, py, tk, e)
+                    near2 = min(near2, gx * gx + gy * gy)
+                # with need > 0 the rays up to n_rays - need, all blocked, settle it
+                rays = n_rays if need <= 0 else min(n_rays - need + 1, n_rays)
+                for i in range(n_cand):
+                    o = cand[i]
+                    if _hides(px, py, occluders[o], occ_lo[o], occ_hi[o], occ_near[o], base + lo, width, n_rays,
+                              rays, near2):
+                        cast = False  # every ray blocked
+                        break
+            for r in range(n_rays if cast else 0):
                 if need > 0 and (seen >= need or r - seen > n_rays - need):
                     break  # settled: enough rays seen, or too many blocked
                 ang = base + lo + (hi - lo) * (r + 0.5) / n_rays
@@ -175,11 +287,12 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
                     o = cand[i]
                     if occ_near[o] >= t_target:
                         continue
-                    rel = (ang - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    rel = _wrap(ang - occ_lo[o])
                     if rel < 0.0 or rel > occ_hi[o] - occ_lo[o]:
                         continue
                     if _ray_rect(px, py, dx, dy, occluders[o]) < t_target:
                         blocked = True
+                        cand[i], cand[0] = cand[0], o  # likely to block the next ray too
                         break
                 if not blocked:
                     seen += 1
@@ -188,6 +301,51 @@ def _visible_share(viewers, ranges, targets, occluders, target_as_occluder, self
             else:
                 share[j, k] = seen / n_rays
     return share
+
+
+@njit(cache=True)
+def _hides(px, py, quad, occ_lo, occ_hi, occ_near, fan_lo, width, n_rays, rays, near2):
+    """``quad``, an occluder of angular extent [occ_lo, occ_hi] from (px, py), blocks
+    each of a target's first ``rays`` rays (ray r at fan_lo + width (r + 0.5) / n_rays,
+    rad, world) in ``_visible_share``'s per-ray test, for a target whose nearest point is
+    sqrt(``near2``) away. It does when those rays lie within its extent by
+    ``_COVER_RAD``, none passes that near one of its corners, and where they enter it is
+    nearer than the target by 5e-6 (relative, in distance; the viewer at least 1 mm
+    from it): each ray then crosses two of its edges away from their ends and not
+    along them, so ``_ray_rect`` finds the entry (rounding ~1e-16 relative, far below
+    the margins). Where the rays enter, at most: the entry along the first and the last
+    ray and along the direction of each corner between them (the edges' distance is
+    convex along each edge). NaN anywhere: False."""
+    span = occ_hi - occ_lo
+    if rays <= 0 or not (width + _MARGIN_RAD < np.pi and span + _MARGIN_RAD < np.pi and occ_near > 1e-3):
+        return False
+    first = fan_lo + width * 0.5 / n_rays
+    last = fan_lo + width * (rays - 0.5) / n_rays
+    gap = _wrap(first - occ_lo)
+    if not (gap >= _COVER_RAD and gap + (last - first) <= span - _COVER_RAD):
+        return False
+    cos_first, sin_first = np.cos(first), np.sin(first)
+    enter = _ray_rect(px, py, cos_first, sin_first, quad)
+    bound2 = enter * enter
+    enter = _ray_rect(px, py, np.cos(last), np.sin(last), quad)
+    bound2 = max(bound2, enter * enter)
+    if not bound2 < np.inf:
+        return False
+    for c in range(4):
+        wx, wy = quad[c, 0] - px, quad[c, 1] - py
+        phi = np.arctan2(cos_first * wy - sin_first * wx, cos_first * wx + sin_first * wy)  # from the first ray
+        if not (phi >= -_COVER_RAD and phi <= last - first + _COVER_RAD):
+            if phi < -_COVER_RAD or phi > last - first + _COVER_RAD:
+                continue  # beside every ray
+            return False
+        for r in range(rays):
+            if abs(phi - width * r / n_rays) <= _COVER_RAD:
+                return False  # a ray through (or near) the corner
+        enter = _ray_rect(px, py, wx, wy, quad)  # in units of the corner's distance
+        if not enter < np.inf:
+            return False
+        bound2 = max(bound2, enter * enter * (wx * wx + wy * wy))
+    return bound2 * (1.0 + 1e-5) < near2
 
 
 def visible_share(viewers_xy: np.ndarray, ranges_m: np.ndarray, targets: np.ndarray, occluders: np.ndarray,

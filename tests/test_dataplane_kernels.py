@@ -1,0 +1,245 @@
+"""The agent's spatial-reasoning and fusion kernels against the code they replaced
+(kept here as the reference, as it stood at ec93cfa): the same values, bit for bit,
+in random scenes, and hand-derived cases."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numba import njit
+
+from vehicle_agent import spatial
+from vehicle_agent.spatial import _inside, _ray_rect, rays_needed
+from world_server.geometry import box_corners
+
+
+@njit
+def _quad_distance_ec93cfa(px, py, quad):
+    best = np.inf
+    for e in range(4):
+        ax, ay = quad[e, 0], quad[e, 1]
+        ex, ey = quad[(e + 1) % 4, 0] - ax, quad[(e + 1) % 4, 1] - ay
+        len2 = ex * ex + ey * ey
+        t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
+        best = min(best, np.hypot(ax + t * ex - px, ay + t * ey - py))
+    return best * (1.0 - 1e-9) - 1e-9
+
+
+@njit
+def _occluder_extent_ec93cfa(px, py, quad):
+    cx = 0.25 * (quad[0, 0] + quad[1, 0] + quad[2, 0] + quad[3, 0])
+    cy = 0.25 * (quad[0, 1] + quad[1, 1] + quad[2, 1] + quad[3, 1])
+    base = np.arctan2(cy - py, cx - px)
+    lo, hi = np.inf, -np.inf
+    for c in range(4):
+        a = np.arctan2(quad[c, 1] - py, quad[c, 0] - px) - base
+        a = (a + np.pi) % (2 * np.pi) - np.pi
+        lo, hi = min(lo, a), max(hi, a)
+    return lo + base, hi + base
+
+
+@njit
+def _visible_share_ec93cfa(viewers, ranges, targets, occluders, target_as_occluder, self_target, n_rays, need=0):
+    """``spatial._visible_share`` as it stood at ec93cfa."""
+    J, K, O = viewers.shape[0], targets.shape[0], occluders.shape[0]
+    share = np.zeros((J, K))
+    occ_lo = np.empty(O)
+    occ_hi = np.empty(O)
+    occ_near = np.empty(O)
+    state = np.zeros(O, dtype=np.int8)
+    cand = np.empty(O, dtype=np.int64)
+    for j in range(J):
+        px, py = viewers[j, 0], viewers[j, 1]
+        own = target_as_occluder[self_target[j]] if self_target[j] >= 0 else -1
+        for o in range(O):
+            state[o] = 0
+            occ_near[o] = _quad_distance_ec93cfa(px, py, occluders[o])
+        for k in range(K):
+            tk = targets[k]
+            cx = 0.25 * (tk[0, 0] + tk[1, 0] + tk[2, 0] + tk[3, 0])
+            cy = 0.25 * (tk[0, 1] + tk[1, 1] + tk[2, 1] + tk[3, 1])
+            if k == self_target[j] or _inside(px, py, tk):
+                share[j, k] = 1.0
+                continue
+            if np.hypot(cx - px, cy - py) > ranges[j]:
+                continue
+            base = np.arctan2(cy - py, cx - px)
+            lo, hi, far = np.inf, -np.inf, 0.0
+            for c in range(4):
+                a = np.arctan2(tk[c, 1] - py, tk[c, 0] - px) - base
+                a = (a + np.pi) % (2 * np.pi) - np.pi
+                lo, hi = min(lo, a), max(hi, a)
+                far = max(far, np.hypot(tk[c, 0] - px, tk[c, 1] - py))
+            reach = far * (1.0 + 1e-9) + 1e-9
+            n_cand = 0
+            width = hi - lo
+            for o in range(O):
+                if o == target_as_occluder[k] or occ_near[o] > reach:
+                    continue
+                if state[o] == 0:
+                    if o == own or _inside(px, py, occluders[o]):
+                        state[o] = 1
+                    else:
+                        state[o] = 2
+                        occ_lo[o], occ_hi[o] = _occluder_extent_ec93cfa(px, py, occluders[o])
+                if state[o] == 1:
+                    continue
+                span = occ_hi[o] - occ_lo[o]
+                if width + 1e-9 < np.pi and span + 1e-9 < np.pi:
+                    gap = (base + lo - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    if gap < -width - 1e-9 or gap > span + 1e-9:
+                        continue
+                cand[n_cand] = o
+                n_cand += 1
+            seen = 0
+            for r in range(n_rays):
+                if need > 0 and (seen >= need or r - seen > n_rays - need):
+                    break
+                ang = base + lo + (hi - lo) * (r + 0.5) / n_rays
+                dx, dy = np.cos(ang), np.sin(ang)
+                t_target = _ray_rect(px, py, dx, dy, tk)
+                if not np.isfinite(t_target):
+                    t_target = np.hypot(cx - px, cy - py)
+                blocked = False
+                for i in range(n_cand):
+                    o = cand[i]
+                    if occ_near[o] >= t_target:
+                        continue
+                    rel = (ang - occ_lo[o] + np.pi) % (2 * np.pi) - np.pi
+                    if rel < 0.0 or rel > occ_hi[o] - occ_lo[o]:
+                        continue
+                    if _ray_rect(px, py, dx, dy, occluders[o]) < t_target:
+                        blocked = True
+                        break
+                if not blocked:
+                    seen += 1
+            if need > 0:
+                share[j, k] = 1.0 if seen >= need else 0.0
+            else:
+                share[j, k] = seen / n_rays
+    return share
+
+
+def _scene(rng: np.random.Generator, extent_m: float):
+    """Targets (cars, trucks, thin or tiny boxes) packed into a square of ``extent_m``,
+    a few buildings, viewers anywhere (some inside a target or on its corner, some on a
+    building's corner or the diagonal of a target): a crowd where most targets are
+    hidden by one another."""
+    n_t, n_b, n_v = int(rng.integers(0, 30)), int(rng.integers(0, 6)), int(rng.integers(1, 30))
+    n = n_t + n_b
+    half = extent_m / 2
+    boxes = np.column_stack([rng.uniform(-half, half, n), rng.uniform(-half, half, n),
+                             np.where(rng.random(n) < 0.3, rng.choice([0.0, np.pi / 2, np.pi / 4], n),
+                                      rng.uniform(-np.pi, np.pi, n)),
+                             np.r_[rng.choice([4.5, 12.0, 0.3, 1e-6, 8.0], n_t) * rng.uniform(0.5, 1.5, n_t),
+                                   rng.uniform(10, 60, n_b)],
+                             np.r_[rng.choice([1.8, 2.5, 0.3, 1e-6], n_t) * rng.uniform(0.5, 1.5, n_t),
+                                   rng.uniform(10, 60, n_b)]])
+    corners = np.array([box_corners(*b) for b in boxes]).reshape(-1, 4, 2)
+    viewers = [rng.uniform(-half - 20, half + 20, (n_v, 2))]
+    if n:
+        pick = rng.integers(0, n, 4)
+        viewers.append(corners[pick, rng.integers(0, 4, 4)])  # on corners
+        a, c = corners[pick, 0], corners[pick, 2]
+        viewers.append(a + (a - c) * rng.uniform(0.1, 3.0, (4, 1)))  # on a diagonal, outside
+    viewers = np.concatenate(viewers)
+    ranges = rng.uniform(20, 150, len(viewers))
+    self_target = np.where(rng.random(len(viewers)) < 0.2, rng.integers(-1, max(n_t, 1), len(viewers)), -1)
+    self_target[self_target >= n_t] = -1
+    return (viewers, ranges, corners[:n_t], corners, np.arange(n_t, dtype=np.int64), self_target.astype(np.int64))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_rays=st.integers(1, 12), extent_m=st.sampled_from([15.0, 40.0, 120.0]))
+def test_visible_share_equals_the_kernel_it_replaced(seed, n_rays, extent_m):
+    """Shared target extents, no rays for a target no occluder's extent meets, and
+    ``_hides`` deciding a wholly hidden target without its rays: the same shares and v
+    as ec93cfa's kernel, bit for bit, with every ray (need 0) and stopping once settled."""
+    args = _scene(np.random.default_rng(seed), extent_m)
+    for need in (0, rays_needed(n_rays), 1, n_rays, n_rays + 1):
+        np.testing.assert_array_equal(spatial._visible_share(*args, n_rays, need),
+                                      _visible_share_ec93cfa(*args, n_rays, need))
+
+
+def test_a_target_behind_a_wall_is_decided_without_its_rays_and_one_beside_it_is_seen():
+    """A 4.5 x 1.8 m car 20 m straight ahead behind a 10 m wide wall at 10 m is hidden
+    (``_hides``: the wall covers its fan and is nearer); the same car 20 m to the side,
+    with nothing between, is seen."""
+    wall = box_corners(10.0, 0.0, 0.0, 0.5, 10.0)
+    hidden, open_ = box_corners(20.0, 0.0, 0.0, 4.5, 1.8), box_corners(0.0, 20.0, 0.0, 4.5, 1.8)
+    targets = np.stack([hidden, open_])
+    occluders = np.stack([hidden, open_, wall])
+    args = (np.zeros((1, 2)), np.array([100.0]), targets, occluders, np.arange(2, dtype=np.int64),
+            np.full(1, -1, dtype=np.int64))
+    np.testing.assert_array_equal(spatial._visible_share(*args, 9, 5), [[0.0, 1.0]])
+    np.testing.assert_array_equal(spatial._visible_share(*args, 9, 0), [[0.0, 1.0]])
+    base, lo, hi = spatial._extent(0.0, 0.0, hidden)
+    occ_lo, occ_hi = spatial._occluder_extent(0.0, 0.0, wall)
+    near2 = (20.0 - 2.25) ** 2
+    assert spatial._hides(0.0, 0.0, wall, occ_lo, occ_hi, 9.75, base + lo, hi - lo, 9, 5, near2)
+    # the car's near face is 17.75 m away; a wall at 18 m does not hide it
+    far_wall = box_corners(18.5, 0.0, 0.0, 0.5, 10.0)
+    occ_lo, occ_hi = spatial._occluder_extent(0.0, 0.0, far_wall)
+    assert not spatial._hides(0.0, 0.0, far_wall, occ_lo, occ_hi, 18.25, base + lo, hi - lo, 9, 5, near2)
+
+
+def test_a_corner_on_a_ray_leaves_the_rays_to_be_cast():
+    """A square occluder turned 45 degrees, its near and far corners straight ahead: the
+    middle ray of a target behind it runs through both corners, where ``_ray_rect``'s
+    rounding decides; ``_hides`` leaves that to the rays."""
+    diamond = box_corners(10.0, 0.0, np.pi / 4, 4.0, 4.0)
+    target = box_corners(30.0, 0.0, 0.0, 0.5, 1.0)
+    base, lo, hi = spatial._extent(0.0, 0.0, target)
+    occ_lo, occ_hi = spatial._occluder_extent(0.0, 0.0, diamond)
+    assert not spatial._hides(0.0, 0.0, diamond, occ_lo, occ_hi, 8.0, base + lo, hi - lo, 9, 9, 29.75 ** 2)
+    assert spatial._hides(0.0, 0.0, diamond, occ_lo, occ_hi, 8.0, base + lo, hi - lo, 8, 8, 29.75 ** 2)
+
+
+@given(a=st.floats(allow_nan=True, allow_infinity=True))
+def test_wrap_is_the_remainder_formula(a):
+    """``_wrap`` against ``(a + pi) % (2 pi) - pi`` (in numba, as the kernel had it): the
+    same float, sign of zero included, NaN for NaN."""
+    got, want = spatial._wrap(a), _wrap_formula(a)
+    assert (np.isnan(got) and np.isnan(want)) or (got == want and np.signbit(got) == np.signbit(want))
+
+
+@njit
+def _wrap_formula(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def test_wrap_at_the_ends_of_its_fast_range():
+    for a in (-np.pi, np.nextafter(-np.pi, 0.0), np.nextafter(-np.pi, -4.0), np.pi, np.nextafter(np.pi, 0.0),
+              np.nextafter(np.pi, 4.0), 0.0, -0.0, 3 * np.pi, -3 * np.pi):
+        assert spatial._wrap(a) == _wrap_formula(a)
+    assert spatial._wrap(0.0) == 0.0 and spatial._wrap(np.pi) == -np.pi  # 2 pi wraps to -pi
+
+
+coord = st.floats(-1e4, 1e4, allow_nan=False) | st.sampled_from([0.0, 1e-30, -1e-30, 1e60, np.nan, np.inf])
+
+
+@given(px=coord, py=coord, quad=st.lists(coord, min_size=8, max_size=8))
+def test_quad_distance_and_farthest_corner_equal_hypot_of_every_edge_and_corner(px, py, quad):
+    """``_quad_distance`` and ``_farthest_corner``, which take np.hypot of the nearest
+    (farthest) by squares only, against hypot of all four, in any quad (degenerate,
+    huge, tiny, NaN)."""
+    q = np.array(quad, dtype=np.float64).reshape(4, 2)
+    np.testing.assert_array_equal(spatial._quad_distance(px, py, q), _quad_distance_ec93cfa(px, py, q))
+    np.testing.assert_array_equal(spatial._farthest_corner(px, py, q), _farthest_ec93cfa(px, py, q))
+
+
+@njit
+def _farthest_ec93cfa(px, py, quad):
+    far = 0.0
+    for c in range(4):
+        far = max(far, np.hypot(quad[c, 0] - px, quad[c, 1] - py))
+    return far
+
+
+def test_quad_distance_of_a_square_by_hand():
+    """A 2 m square centred at (10, 0): its nearest edge is 9 m from the origin, its
+    farthest corner sqrt(11^2 + 1) m."""
+    sq = box_corners(10.0, 0.0, 0.0, 2.0, 2.0)
+    assert spatial._quad_distance(0.0, 0.0, sq) == 9.0 * (1.0 - 1e-9) - 1e-9
+    assert spatial._farthest_corner(0.0, 0.0, sq) == np.hypot(11.0, 1.0)

@@ -243,3 +243,79 @@ def test_quad_distance_of_a_square_by_hand():
     sq = box_corners(10.0, 0.0, 0.0, 2.0, 2.0)
     assert spatial._quad_distance(0.0, 0.0, sq) == 9.0 * (1.0 - 1e-9) - 1e-9
     assert spatial._farthest_corner(0.0, 0.0, sq) == np.hypot(11.0, 1.0)
+
+
+@njit
+def _first_close_ec93cfa(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, safety, window):
+    """``spatial._first_close`` as it stood at ec93cfa."""
+    J, T = pos_j.shape[0], pos_j.shape[1]
+    K = obj_xy.shape[0]
+    first = np.full((J, K), -1, dtype=np.int64)
+    for j in range(J):
+        off_j = max(dims_j[j, 0] - dims_j[j, 1], 0.0) / 2
+        for k in range(K):
+            off_k = max(dims_k[k, 0] - dims_k[k, 1], 0.0) / 2
+            reach = dims_j[j, 1] / 2 + dims_k[k, 1] / 2 + safety
+            ck, sk = np.cos(head_k[k]), np.sin(head_k[k])
+            vx, vy = obj_vel[k, 0], obj_vel[k, 1]
+            for t in range(T):
+                t_lo = max(dt[t] - window, 0.0)
+                t_hi = dt[t] + window
+                ax, ay = obj_xy[k, 0] + vx * t_lo, obj_xy[k, 1] + vy * t_lo
+                ex, ey = vx * (t_hi - t_lo), vy * (t_hi - t_lo)
+                len2 = ex * ex + ey * ey
+                jx, jy = pos_j[j, t, 0], pos_j[j, t, 1]
+                f = 0.0 if len2 <= 0.0 else min(max(((jx - ax) * ex + (jy - ay) * ey) / len2, 0.0), 1.0)
+                if spatial._farther(jx - ax - f * ex, jy - ay - f * ey, off_j + off_k + reach):
+                    continue
+                cj, sj = np.cos(head_j[j, t]), np.sin(head_j[j, t])
+                close = False
+                for a in (-1.0, 0.0, 1.0):
+                    px, py = jx + a * off_j * cj, jy + a * off_j * sj
+                    for b in (-1.0, 0.0, 1.0):
+                        bx, by = ax + b * off_k * ck, ay + b * off_k * sk
+                        f = 0.0 if len2 <= 0.0 else min(max(((px - bx) * ex + (py - by) * ey) / len2, 0.0), 1.0)
+                        dx, dy = px - bx - f * ex, py - by - f * ey
+                        if dx * dx + dy * dy < reach * reach:
+                            close = True
+                if close:
+                    first[j, k] = t
+                    break
+    return first
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread_m=st.sampled_from([5.0, 30.0, 150.0]),
+       window_s=st.sampled_from([0.0, 2.0, 11.0]), odd=st.booleans())
+def test_first_close_equals_the_kernel_it_replaced(seed, spread_m, window_s, odd):
+    """``_first_close``, which passes over a pair whose boxes (j's centres over the
+    horizon, k's over every window) lie farther apart than any sample could be close,
+    against ec93cfa's: the same first index for every pair; with ``odd``, NaN and inf
+    velocities and positions, negative and zero dims, unsorted and negative times."""
+    rng = np.random.default_rng(seed)
+    J, K, T = int(rng.integers(0, 12)), int(rng.integers(0, 12)), int(rng.integers(0, 34))
+    dt = np.arange(T) * 0.25
+    pos_j = rng.uniform(-spread_m, spread_m, (J, 1, 2)) + rng.normal(0, 3, (J, 1, 2)) * dt[None, :, None]
+    head_j = rng.uniform(-np.pi, np.pi, (J, T))
+    dims_j = np.tile([4.5, 1.8], (J, 1))
+    obj_xy = rng.uniform(-spread_m, spread_m, (K, 2))
+    obj_vel = rng.normal(0, 5, (K, 2)) * (rng.random((K, 1)) < 0.7)
+    head_k = rng.uniform(-np.pi, np.pi, K)
+    dims_k = rng.uniform(0.3, 12, (K, 2))
+    if odd:
+        dt = rng.permutation(dt) - rng.uniform(0, 3)
+        for a in (pos_j.reshape(-1), obj_vel.reshape(-1), obj_xy.reshape(-1)):
+            if len(a):
+                a[rng.integers(0, len(a), 2)] = rng.choice([np.nan, np.inf, -np.inf], 2)
+        dims_k[:, 1] *= rng.choice([-1.0, 0.0, 1.0], K)
+    args = (pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, 1.0, window_s)
+    np.testing.assert_array_equal(spatial._first_close(*args), _first_close_ec93cfa(*args))
+
+
+def test_apart_by_hand():
+    """Boxes 3 m apart along x and 4 m along y are 5 m apart: apart beyond 4.99 m, not
+    beyond 5 m (the margin), nor beyond a NaN bound."""
+    a, b = np.array([0.0, 1.0, 0.0, 1.0]), np.array([4.0, 6.0, 5.0, 7.0])
+    assert spatial._apart(a, b, 4.99) and spatial._apart(b, a, 4.99)
+    assert not spatial._apart(a, b, 5.0) and not spatial._apart(a, b, np.nan)
+    assert not spatial._apart(a, a, 0.0)

@@ -431,11 +431,36 @@ def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, saf
     J, T = pos_j.shape[0], pos_j.shape[1]
     K = obj_xy.shape[0]
     first = np.full((J, K), -1, dtype=np.int64)
+    box_j = np.empty((J, 4))  # j's centres over the horizon: min x, max x, min y, max y
+    for j in range(J):
+        box_j[j, 0] = box_j[j, 2] = np.inf
+        box_j[j, 1] = box_j[j, 3] = -np.inf
+        for t in range(T):
+            x, y = pos_j[j, t, 0], pos_j[j, t, 1]
+            if not (x == x and y == y):  # NaN: no box, every pair sampled
+                box_j[j, 0], box_j[j, 1], box_j[j, 2], box_j[j, 3] = -np.inf, np.inf, -np.inf, np.inf
+                break
+            box_j[j, 0], box_j[j, 1] = min(box_j[j, 0], x), max(box_j[j, 1], x)
+            box_j[j, 2], box_j[j, 3] = min(box_j[j, 2], y), max(box_j[j, 3], y)
+    tau_lo, tau_hi = np.inf, -np.inf  # the times k's segments span
+    for t in range(T):
+        t_lo = max(dt[t] - window, 0.0)
+        tau_lo, tau_hi = min(tau_lo, t_lo, dt[t] + window), max(tau_hi, t_lo, dt[t] + window)
+    box_k = np.empty((K, 4))  # k's centre over those times
+    for k in range(K):
+        x0, y0 = obj_xy[k, 0] + obj_vel[k, 0] * tau_lo, obj_xy[k, 1] + obj_vel[k, 1] * tau_lo
+        x1, y1 = obj_xy[k, 0] + obj_vel[k, 0] * tau_hi, obj_xy[k, 1] + obj_vel[k, 1] * tau_hi
+        if x0 == x0 and y0 == y0 and x1 == x1 and y1 == y1:
+            box_k[k, 0], box_k[k, 1], box_k[k, 2], box_k[k, 3] = min(x0, x1), max(x0, x1), min(y0, y1), max(y0, y1)
+        else:  # NaN (or no samples): no box, every pair sampled
+            box_k[k, 0], box_k[k, 1], box_k[k, 2], box_k[k, 3] = -np.inf, np.inf, -np.inf, np.inf
     for j in range(J):
         off_j = max(dims_j[j, 0] - dims_j[j, 1], 0.0) / 2
         for k in range(K):
             off_k = max(dims_k[k, 0] - dims_k[k, 1], 0.0) / 2
             reach = dims_j[j, 1] / 2 + dims_k[k, 1] / 2 + safety
+            if _apart(box_j[j], box_k[k], off_j + off_k + reach):
+                continue  # the cheap reject below would reject every sample
             ck, sk = np.cos(head_k[k]), np.sin(head_k[k])
             vx, vy = obj_vel[k, 0], obj_vel[k, 1]
             for t in range(T):
@@ -463,6 +488,20 @@ def _first_close(pos_j, head_j, dims_j, obj_xy, obj_vel, head_k, dims_k, dt, saf
                     first[j, k] = t
                     break
     return first
+
+
+@njit(cache=True)
+def _apart(a, b, bound):
+    """The boxes ``a`` and ``b`` (min x, max x, min y, max y) are farther apart than
+    ``bound`` (>= 0) by a margin far above rounding (1e-9 relative and absolute): every
+    point of one is farther than ``bound`` from every point of the other. False where a
+    bound is NaN."""
+    if not bound >= 0.0:
+        return False
+    gx = max(b[0] - a[1], a[0] - b[1], 0.0)
+    gy = max(b[2] - a[3], a[2] - b[3], 0.0)
+    limit = bound * (1.0 + 1e-9) + 1e-9
+    return gx * gx + gy * gy > limit * limit
 
 
 def sample_trajectory(waypoints: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -319,3 +319,78 @@ def test_apart_by_hand():
     assert spatial._apart(a, b, 4.99) and spatial._apart(b, a, 4.99)
     assert not spatial._apart(a, b, 5.0) and not spatial._apart(a, b, np.nan)
     assert not spatial._apart(a, a, 0.0)
+
+
+def _match_vehicles_ec93cfa(viewers_xy, centroids, gate_m=3.0):
+    if len(viewers_xy) == 0 or len(centroids) == 0:
+        return np.full(len(viewers_xy), -1, dtype=np.int64)
+    d = np.linalg.norm(viewers_xy[:, None, :] - centroids[None, :, :2], axis=2)
+    nearest = np.argmin(d, axis=1)
+    return np.where(d[np.arange(len(viewers_xy)), nearest] <= gate_m, nearest, -1).astype(np.int64)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread_m=st.sampled_from([2.0, 10.0, 100.0]), odd=st.booleans())
+def test_match_vehicles_equals_the_numpy_statements_it_replaced(seed, spread_m, odd):
+    """``match_vehicles`` (one kernel) against ec93cfa's numpy statements: the same
+    matches, ties to the first, NaN as np.argmin takes it, with 2 or 3 centroid columns."""
+    rng = np.random.default_rng(seed)
+    J, K = int(rng.integers(0, 15)), int(rng.integers(0, 15))
+    viewers = rng.uniform(-spread_m, spread_m, (J, 2))
+    centroids = np.round(rng.uniform(-spread_m, spread_m, (K, int(rng.integers(2, 4)))), 1)
+    if odd and K:
+        centroids[rng.integers(0, K, 2), 0] = np.nan
+        viewers = np.concatenate([viewers, centroids[:3, :2]])
+    np.testing.assert_array_equal(spatial.match_vehicles(viewers, centroids),
+                                  _match_vehicles_ec93cfa(viewers, centroids))
+
+
+def test_match_vehicles_by_hand():
+    """Viewers at (0, 0) and (10, 0), centroids 1 m and 2 m from the first and 5 m from
+    the second: the first matches the nearer, the second none (gate 3 m)."""
+    got = spatial.match_vehicles(np.array([[0.0, 0.0], [10.0, 0.0]]), np.array([[2.0, 0.0], [0.0, 1.0], [5.0, 0.0]]))
+    np.testing.assert_array_equal(got, [1, -1])
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_object_map_footprints_dims_and_headings_equal_the_per_track_ones(seed):
+    """``dataplane._footprints``, ``_object_dims``, ``_body_corners`` and the headings
+    of ``DataPlane.object_map`` against ``corners_of``, the per-track ``max``es,
+    ``_box_corners`` and ``Track.heading_rad``: the same floats."""
+    from vehicle_agent.dataplane import _body_corners, _box_corners, _footprints, _object_dims
+    from vehicle_agent.perception import DetectedObject, corners_of
+    from vehicle_agent.tracking import STILL_MPS, Track
+
+    rng = np.random.default_rng(seed)
+    K = int(rng.integers(0, 25))
+    objs = [DetectedObject(np.zeros((1, 3), np.float32), np.zeros((1, 2), np.int64), rng.normal(0, 80, 3),
+                           float(rng.uniform(-np.pi, np.pi)), float(rng.choice([rng.uniform(0.0, 12), 0.5, 1.0])),
+                           float(rng.choice([rng.uniform(0.0, 3), 1.0, 0.2]))) for _ in range(K)]
+    yaw = np.array([o.yaw_rad for o in objs], dtype=np.float64)
+    extent = np.array([(o.length_m, o.width_m) for o in objs], dtype=np.float64).reshape(-1, 2)
+    centroid = np.array([o.centroid[:2] for o in objs], dtype=np.float64).reshape(-1, 2)
+    got = _footprints(yaw, extent, centroid)
+    want = corners_of(objs)
+    assert got.shape == want.shape and got.dtype == want.dtype
+    np.testing.assert_array_equal(got, want)
+    dims = np.array([[max(o.length_m, o.width_m, 1.0), max(o.width_m, 1.0)] for o in objs]).reshape(-1, 2)
+    np.testing.assert_array_equal(_object_dims(extent), dims)
+    vel = rng.normal(0, 3, (K, 2)) * rng.choice([0.0, 0.3, 1.0], (K, 1))
+    tracks = [Track(k, centroid[k], vel[k], 0.0, objs[k]) for k in range(K)]
+    heading = np.where(np.hypot(vel[:, 0], vel[:, 1]) > STILL_MPS, np.arctan2(vel[:, 1], vel[:, 0]), yaw)
+    np.testing.assert_array_equal(heading, np.array([t.heading_rad for t in tracks], dtype=np.float64))
+    x, y = (float(v) for v in rng.uniform(-100, 100, 2))
+    yaw1, length, width = float(rng.uniform(-7, 7)), float(rng.uniform(0.5, 20)), float(rng.uniform(0.5, 5))
+    np.testing.assert_array_equal(_body_corners(x, y, yaw1, length, width),
+                                  _box_corners(np.array([[x, y, yaw1, length, width, 0.0]])))
+
+
+def test_footprint_by_hand():
+    """A 4 x 2 m box at (10, 5) turned 90 degrees spans x 9..11 and y 3..7."""
+    from vehicle_agent.dataplane import _body_corners, _footprints
+
+    got = _footprints(np.array([np.pi / 2]), np.array([[4.0, 2.0]]), np.array([[10.0, 5.0]]))[0]
+    np.testing.assert_allclose(np.sort(got[:, 0]), [9, 9, 11, 11], atol=1e-12)
+    np.testing.assert_allclose(np.sort(got[:, 1]), [3, 3, 7, 7], atol=1e-12)
+    np.testing.assert_allclose(_body_corners(10.0, 5.0, np.pi / 2, 4.0, 2.0)[0], got, atol=1e-12)

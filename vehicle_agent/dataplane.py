@@ -22,10 +22,10 @@ from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse, shared_now
 from vehicle_agent.payload import decode_objects, encode_objects, payload_size
-from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, corners_of, extract_objects,
-                                      scan_grid, scan_objects)
+from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, extract_objects, scan_grid,
+                                      scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
-from vehicle_agent.tracking import Track, Tracker
+from vehicle_agent.tracking import STILL_MPS, Track, Tracker
 
 DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
 DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
@@ -254,28 +254,37 @@ class DataPlane:
     # ----------------------------------------------------------------- reason
 
     def object_map(self, view: View, neighbors: Neighbors) -> ObjectMap:
-        """v and r of every tracked object for every other vehicle of the domain."""
+        """v and r of every tracked object for every other vehicle of the domain. The
+        tracks' fields are gathered once, and the footprints (``corners_of``'s), the
+        own body (``_box_corners``'), the vehicles' own objects (``match_vehicles``) and
+        the objects' dims and headings (``Track.heading_rad``) are worked out from them
+        with the same operations, in a few calls instead of a few per track."""
         tracks = view.tracks
         receivers = neighbors.take(in_domain(neighbors.xy))
+        dets = [t.detection for t in tracks]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
-        sizes = np.array([payload_size(len(t.detection.points_world)) for t in tracks], dtype=np.int64)
+        sizes = payload_size(np.array([len(d.points_world) for d in dets], dtype=np.int64))
         centroids = np.array([t.xy for t in tracks], dtype=np.float64).reshape(-1, 2)
         viewers = receivers.xy
         with self._timed("visibility"):
-            targets = corners_of([t.detection for t in tracks])
-            own = _box_corners(np.array([[view.pose.x_m, view.pose.y_m, view.pose.yaw_rad,
-                                          self.mission.spec.length_m, self.mission.spec.width_m, 0.0]]))
+            yaw = np.array([d.yaw_rad for d in dets], dtype=np.float64)
+            extent = np.array([(d.length_m, d.width_m) for d in dets], dtype=np.float64).reshape(-1, 2)
+            targets = _footprints(yaw, extent, np.array([d.centroid[:2] for d in dets], dtype=np.float64))
+            pose = view.pose
+            own = _body_corners(pose.x_m, pose.y_m, pose.yaw_rad, self.mission.spec.length_m,
+                                self.mission.spec.width_m)
             occluders = np.concatenate([targets, own, self.buildings])
             vis = visible(viewers, np.full(len(viewers), self.mission.lidar.range_m), targets, occluders,
                           np.arange(len(tracks)), match_vehicles(viewers, centroids))
         with self._timed("relevance"):
-            dims = np.array([[max(t.detection.length_m, t.detection.width_m, 1.0), max(t.detection.width_m, 1.0)]
-                             for t in tracks]).reshape(-1, 2)
             vel = np.array([t.velocity for t in tracks], dtype=np.float64).reshape(-1, 2)
-            rel = relevance(receivers.waypoints, np.tile(DEFAULT_DIMS, (len(receivers), 1)),
-                            centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode,
-                            obj_heading=np.array([t.heading_rad for t in tracks], dtype=np.float64),
-                            starts=receivers.starts)
+            dims = _object_dims(extent)
+            # Track.heading_rad: the direction of motion (np.arctan2, as there) when moving
+            heading = np.where(np.hypot(vel[:, 0], vel[:, 1]) > STILL_MPS, np.arctan2(vel[:, 1], vel[:, 0]), yaw)
+            dims_j = np.empty((len(receivers), 2))
+            dims_j[:] = DEFAULT_DIMS
+            rel = relevance(receivers.waypoints, dims_j, centroids, vel, dims, view.t_sim_s, mode=self.relevance_mode,
+                            obj_heading=heading, starts=receivers.starts)
         return ObjectMap(ids, sizes, centroids.astype(np.float32),
                          receivers.vid,
                          np.ascontiguousarray(vis.T), np.ascontiguousarray(rel.T))
@@ -397,6 +406,59 @@ def _lane_segment(xy, vel, speed, a, d, length, half, cos_min):
                 nearest = across
                 best[t] = s
     return best
+
+
+def _footprints(yaw: np.ndarray, extent: np.ndarray, centroid: np.ndarray) -> np.ndarray:
+    """``corners_of`` the objects of heading ``yaw`` (K,), length and width ``extent``
+    (K, 2) and centroid (K, 2): the same arrays (``_corner_factors``) into the same
+    matrix product, so the same values (numpy's product may fuse a multiply and an add;
+    its rounding is left to it)."""
+    if not len(yaw):
+        return np.zeros((0, 4, 2))
+    local, rotation = np.empty((len(yaw), 4, 2)), np.empty((len(yaw), 2, 2))
+    _corner_factors(np.cos(yaw), np.sin(yaw), extent, local, rotation)
+    return centroid[:, None, :] + local @ rotation
+
+
+@njit(cache=True)
+def _corner_factors(c, s, extent, local, rotation):
+    """``corners_of``'s corners about the centroid (``local``, (K, 4, 2)) and rotations
+    (``rotation``, (K, 2, 2)), from the cosines ``c`` and sines ``s`` of the headings."""
+    for k in range(len(c)):
+        hl, hw = extent[k, 0] / 2, extent[k, 1] / 2
+        local[k, 0, 0], local[k, 0, 1] = hl, hw
+        local[k, 1, 0], local[k, 1, 1] = -hl, hw
+        local[k, 2, 0], local[k, 2, 1] = -hl, -hw
+        local[k, 3, 0], local[k, 3, 1] = hl, -hw
+        rotation[k, 0, 0], rotation[k, 0, 1] = c[k], s[k]
+        rotation[k, 1, 0], rotation[k, 1, 1] = -s[k], c[k]
+
+
+@njit(cache=True)
+def _object_dims(extent):
+    """(K, 2) each object's [max(length, width, 1.0), max(width, 1.0)], as Python's
+    ``max`` picks (a later value only if greater)."""
+    dims = np.empty((extent.shape[0], 2))
+    for k in range(extent.shape[0]):
+        length, width = extent[k, 0], extent[k, 1]
+        m = length
+        if width > m:
+            m = width
+        if 1.0 > m:
+            m = 1.0
+        dims[k, 0] = m
+        dims[k, 1] = 1.0 if 1.0 > width else width
+    return dims
+
+
+def _body_corners(x: float, y: float, yaw: float, length: float, width: float) -> np.ndarray:
+    """(1, 4, 2) ``_box_corners`` of one box, its cosine and sine taken as there (of a
+    column of a (1, 6) array) and the sums in Python floats, in the same order."""
+    column = np.array([[x, y, yaw, length, width, 0.0]])[:, 2]
+    c, s = float(np.cos(column)[0]), float(np.sin(column)[0])
+    hl, hw = length / 2, width / 2
+    return np.array([[[x + hl * c - hw * s, y + hl * s + hw * c], [x + -hl * c - hw * s, y + -hl * s + hw * c],
+                      [x + -hl * c - -hw * s, y + -hl * s + -hw * c], [x + hl * c - -hw * s, y + hl * s + -hw * c]]])
 
 
 def _box_corners(boxes: np.ndarray) -> np.ndarray:

@@ -369,9 +369,25 @@ def match_vehicles(viewers_xy: np.ndarray, centroids: np.ndarray, gate_m: float 
     within ``gate_m`` (that object is j itself), or -1."""
     if len(viewers_xy) == 0 or len(centroids) == 0:
         return np.full(len(viewers_xy), -1, dtype=np.int64)
-    d = np.linalg.norm(viewers_xy[:, None, :] - centroids[None, :, :2], axis=2)
-    nearest = np.argmin(d, axis=1)
-    return np.where(d[np.arange(len(viewers_xy)), nearest] <= gate_m, nearest, -1).astype(np.int64)
+    return _nearest_within(np.ascontiguousarray(viewers_xy, dtype=np.float64),
+                           np.ascontiguousarray(centroids, dtype=np.float64), float(gate_m))
+
+
+@njit(cache=True)
+def _nearest_within(viewers, centroids, gate):
+    """``match_vehicles``' numpy statements in one pass: the distances as np.linalg.norm
+    takes them (the root of the sum of the two squares), the first nearest (or the first
+    NaN, as np.argmin), kept if within ``gate``."""
+    out = np.empty(viewers.shape[0], dtype=np.int64)
+    for j in range(viewers.shape[0]):
+        best, at = np.inf, 0
+        for k in range(centroids.shape[0]):
+            dx, dy = viewers[j, 0] - centroids[k, 0], viewers[j, 1] - centroids[k, 1]
+            d = np.sqrt(dx * dx + dy * dy)
+            if k == 0 or d < best or (d != d and best == best):
+                best, at = d, k
+        out[j] = at if best <= gate else -1
+    return out
 
 
 def visibility(share: np.ndarray) -> np.ndarray:

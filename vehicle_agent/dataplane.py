@@ -20,7 +20,7 @@ from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from vehicle_agent.agreement import HeardControl
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
-from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fuse, shared_now
+from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fused_now
 from vehicle_agent.payload import decode_objects, encode_objects, payload_size
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, extract_objects, scan_grid,
                                       scan_objects)
@@ -331,10 +331,10 @@ class DataPlane:
             self.received.add_batch(batch)
             spec = self.mission.spec
             self._recent_poses.append(view.pose)
-            # not_contradicted(not_me(received.current(...))) in one placement of the stack
-            self.shared_batch = shared_now(self.received, view.t_sim_s, (batch.sender, batch.object_id),
-                                           list(self._recent_poses), spec.length_m, spec.width_m, view.grid)
-            fused = fuse(view.grid, self.shared_batch)
+            # fuse(grid, not_contradicted(not_me(received.current(...)))) in one placement of the stack
+            fused = fused_now(self.received, view.t_sim_s, (batch.sender, batch.object_id), list(self._recent_poses),
+                              spec.length_m, spec.width_m, view.grid)
+            self.shared_batch = fused.shared
         return fused, bad
 
     @property

@@ -465,6 +465,19 @@ def not_contradicted(shared: SharedBatch, grid: Grid, free_share: float = 0.5) -
 
 def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np.ndarray], poses: list,
                length_m: float, width_m: float, grid: Grid, free_share: float = 0.5) -> SharedBatch:
+    return _shared_now_of(store, t_now_s, fresh, poses, length_m, width_m, grid, free_share, False)[0]
+
+
+def fused_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np.ndarray], poses: list,
+              length_m: float, width_m: float, grid: Grid, free_share: float = 0.5) -> FusedGrid:
+    """``fuse(grid, shared_now(...))``: the same grid, the same batch, its points fused
+    as ``_shared_now`` writes them."""
+    return _shared_now_of(store, t_now_s, fresh, poses, length_m, width_m, grid, free_share, True)[1]
+
+
+def _shared_now_of(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np.ndarray], poses: list,
+                   length_m: float, width_m: float, grid: Grid, free_share: float,
+                   mark: bool) -> tuple[SharedBatch, FusedGrid | None]:
     """``not_contradicted(not_me(store.current(t_now_s, fresh_keys), poses, length_m,
     width_m), grid, free_share)`` in one pass over the held objects (``_shared_now``):
     the same objects, the same points, the same values. ``fresh``: the (sender, object
@@ -486,20 +499,26 @@ def shared_now(store: ReceivedStore, t_now_s: float, fresh: tuple[np.ndarray, np
         yaw = px = py = np.zeros(0)
         box = (np.inf, -np.inf, np.inf, -np.inf)
     is_fresh = _member(store.key, _key(*fresh))
+    state = grid.state.copy() if mark else np.zeros((0, 0), dtype=grid.state.dtype)
+    received = np.zeros_like(grid.drivable) if mark else np.zeros((0, 0), dtype=np.bool_)
+    on_own = np.zeros(len(store.counts), dtype=np.bool_)
     points, kept, kept_counts, merged = _shared_now(
         store.pool, store.starts, store.counts, store.bounds, shift, is_fresh, px, py, np.cos(yaw), np.sin(yaw),
         half_length, half_width, *box, grid.spec.cell_m, exact_inverse(grid.spec.cell_m), grid.i0, grid.j0,
-        grid.state, GROUND, free_share, MERGED_SHARE, SELF_SHARE)
+        grid.state, GROUND, free_share, MERGED_SHARE, SELF_SHARE, mark, grid.spec.ground_clear_m, state, received,
+        on_own)
     if merged.any():
         velocity = np.where(merged[:, None], 0.0, velocity)
     key = store.key[kept]
-    return SharedBatch(key >> 32, key & _ID_MASK, points, kept_counts[kept], velocity[kept], age[kept],
-                       is_fresh[kept])
+    shared = SharedBatch(key >> 32, key & _ID_MASK, points, kept_counts[kept], velocity[kept], age[kept],
+                         is_fresh[kept])
+    return shared, FusedGrid(grid, state, received, shared, on_own[:len(shared)]) if mark else None
 
 
 @njit(cache=True)
 def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin_yaw, half_length, half_width,
-                x_lo, x_hi, y_lo, y_hi, cell_m, inv, i0, j0, state, ground, free_share, merged_share, self_share):
+                x_lo, x_hi, y_lo, y_hi, cell_m, inv, i0, j0, state, ground, free_share, merged_share, self_share,
+                mark, clear_m, fused, received, on_own):
     """Object by object, the held points (``starts``/``counts`` rows of ``pool``)
     placed at their object's ``shift``: ``not_me``'s test of each point where it is
     placed and where it was captured against our bodies (``_on_a_body``, the box as four
@@ -517,14 +536,19 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
     Returns the points, which objects are kept, each object's points not on us, and
     which objects merged us with something. Replaces three passes over the whole stack
     (marking, counting, writing): an object's points are read three times while they
-    are in cache."""
+    are in cache.
+
+    With ``mark``, each kept point is also fused into the grid as it is written
+    (``_fuse_points``' step, one kept object after the other, into ``fused``,
+    ``received`` and ``on_own``, the kept object's row; ``clear_m``: the grid's
+    ``ground_clear_m``): the points are not read a second time."""
     n = state.shape[0]
     out = np.empty((counts.sum(), 3))
     kept = np.zeros(len(counts), dtype=np.bool_)
     kept_counts = np.zeros(len(counts), dtype=np.int64)
     merged = np.zeros(len(counts), dtype=np.bool_)
     mine = np.zeros(counts.max() if len(counts) else 0, dtype=np.bool_)  # the object's points on our body
-    q = 0
+    q = n_kept = 0
     for k in range(len(counts)):
         start, count = starts[k], counts[k]
         sx, sy = shift[k, 0], shift[k, 1]
@@ -560,12 +584,32 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
                         on_ground += 1
             keep = not (inside > 0 and on_ground >= free_share * inside)
         if keep:
+            last_r = last_c = -1
             for i in range(count):
                 if tested and mine[i]:
                     continue
                 x, y = _placed_xy(pool, start + i, sx, sy, back)
-                out[q, 0], out[q, 1], out[q, 2] = x, y, pool[start + i, 2]
+                z = pool[start + i, 2]
+                out[q, 0], out[q, 1], out[q, 2] = x, y, z
                 q += 1
+                if not (mark and z > clear_m):  # _fuse_points' step, into the kept object's row n_kept
+                    continue
+                if inv > 0.0:
+                    col, row = np.floor(x * inv) - i0, np.floor(y * inv) - j0
+                else:
+                    col, row = np.floor(x / cell_m) - i0, np.floor(y / cell_m) - j0
+                if not (0 <= row < n and 0 <= col < n):  # also refuses NaN
+                    continue
+                r, c = int(row), int(col)
+                if r == last_r and c == last_c:
+                    continue
+                last_r, last_c = r, c
+                if state[r, c] == ABOVE:
+                    on_own[n_kept] = True
+                else:
+                    received[r, c] = True
+                fused[r, c] = ABOVE
+            n_kept += 1
         kept[k], kept_counts[k], merged[k] = keep, count - hits, back
     return out[:q], kept, kept_counts, merged
 
@@ -672,6 +716,8 @@ def warm_kernels() -> None:
                np.zeros(4), np.zeros(2, dtype=np.bool_), np.zeros(2))
     _on_ground(pts, counts, flags, 0.5, 0, 0, np.zeros((2, 2), dtype=np.uint8), GROUND)
     x_lo = np.float64(0.0)  # the box's bounds come as numpy floats (from ``np.min``)
-    _shared_now(pts, counts - 1, counts, np.zeros((2, 4)), np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1),
-                np.ones(1), np.zeros(1), 1.0, 1.0, x_lo, x_lo, x_lo, x_lo, 0.5, 2.0, 0, 0,
-                np.zeros((2, 2), dtype=np.uint8), GROUND, 0.5, MERGED_SHARE, SELF_SHARE)
+    for mark in (False, True):  # shared_now's and fused_now's
+        _shared_now(pts, counts - 1, counts, np.zeros((2, 4)), np.zeros((2, 2)), flags, np.zeros(1), np.zeros(1),
+                    np.ones(1), np.zeros(1), 1.0, 1.0, x_lo, x_lo, x_lo, x_lo, 0.5, 2.0, 0, 0,
+                    np.zeros((2, 2), dtype=np.uint8), GROUND, 0.5, MERGED_SHARE, SELF_SHARE, mark, 0.25,
+                    np.zeros((2, 2), dtype=np.uint8), np.zeros((2, 2), dtype=np.bool_), np.zeros(2, dtype=np.bool_))

@@ -477,3 +477,51 @@ def test_fused_now_by_hand():
     assert fused.state[10, 12] == ABOVE and fused.state[10, 13] == ABOVE
     assert not fused.received[10, 12] and fused.received[10, 13] and fused.received.sum() == 1
     np.testing.assert_array_equal(fused.on_own, [True])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_relevance_in_one_call_equals_sampling_then_first_close(seed):
+    """``relevance``, which samples and tests in one kernel call
+    (``_sampled_first_close``), against ``_sample_all`` then ec93cfa's ``_first_close``,
+    in both modes, with packed float64 trajectories and with lists of float32 ones."""
+    rng = np.random.default_rng(seed)
+    J, K = int(rng.integers(0, 8)), int(rng.integers(0, 8))
+    t_now = float(rng.uniform(0, 10))
+    trajs = []
+    for _ in range(J):
+        p = int(rng.integers(1, 10))
+        t = t_now + np.sort(rng.uniform(-1, 9, p))
+        trajs.append(np.column_stack([np.cumsum(rng.normal(0, 5, p)), np.cumsum(rng.normal(0, 5, p)), t]))
+    dims_j = np.tile([4.5, 1.8], (J, 1))
+    obj_xy, obj_vel = rng.uniform(-20, 20, (K, 2)), rng.normal(0, 4, (K, 2))
+    obj_dims, heading = rng.uniform(0.5, 8, (K, 2)), rng.uniform(-np.pi, np.pi, K)
+    times = t_now + np.arange(0.0, spatial.HORIZON_S + 1e-9, spatial.STEP_S)
+    for packed in (True, False):
+        if packed:
+            wp = np.concatenate(trajs) if trajs else np.zeros((0, 3))
+            starts = np.zeros(J + 1, dtype=np.int64)
+            starts[1:] = np.cumsum([len(t) for t in trajs])
+            args = (wp, dims_j, obj_xy, obj_vel, obj_dims, t_now)
+            kw = {"starts": starts, "obj_heading": heading}
+        else:
+            trajs32 = [t.astype(np.float32) for t in trajs]
+            wp = np.concatenate(trajs32).astype(np.float64) if trajs else np.zeros((0, 3))
+            starts = np.zeros(J + 1, dtype=np.int64)
+            starts[1:] = np.cumsum([len(t) for t in trajs])
+            args = (trajs32, dims_j, obj_xy, obj_vel, obj_dims, t_now)
+            kw = {}
+        for mode in ("bool", "ttc"):
+            got = spatial.relevance(*args, mode=mode, **kw)
+            if J == 0 or K == 0:
+                assert got.shape == (J, K)
+                continue
+            pos, head = spatial._sample_all(wp, starts, times)
+            head_k = heading if packed else np.where(np.hypot(obj_vel[:, 0], obj_vel[:, 1]) > 0.1,
+                                                     np.arctan2(obj_vel[:, 1], obj_vel[:, 0]), 0.0)
+            first = _first_close_ec93cfa(pos, head, dims_j, obj_xy, obj_vel, head_k, obj_dims, times - t_now,
+                                         spatial.SAFETY_M, spatial.WINDOW_S)
+            hit = first >= 0
+            want = hit.astype(np.float32) if mode == "bool" else np.where(
+                hit, 1.0 / (1.0 + (times - t_now)[np.maximum(first, 0)]), 0.0).astype(np.float32)
+            np.testing.assert_array_equal(got, want)

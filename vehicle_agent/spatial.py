@@ -319,24 +319,30 @@ def _hides(px, py, quad, occ_lo, occ_hi, occ_near, fan_lo, width, n_rays, rays, 
     span = occ_hi - occ_lo
     if rays <= 0 or not (width + _MARGIN_RAD < np.pi and span + _MARGIN_RAD < np.pi and occ_near > 1e-3):
         return False
+    if not occ_near * occ_near * (1.0 + 1e-5) < near2:  # it enters no nearer than its nearest point
+        return False
     first = fan_lo + width * 0.5 / n_rays
     last = fan_lo + width * (rays - 0.5) / n_rays
     gap = _wrap(first - occ_lo)
     if not (gap >= _COVER_RAD and gap + (last - first) <= span - _COVER_RAD):
         return False
     cos_first, sin_first = np.cos(first), np.sin(first)
+    cos_last, sin_last = np.cos(last), np.sin(last)
     enter = _ray_rect(px, py, cos_first, sin_first, quad)
     bound2 = enter * enter
-    enter = _ray_rect(px, py, np.cos(last), np.sin(last), quad)
+    enter = _ray_rect(px, py, cos_last, sin_last, quad)
     bound2 = max(bound2, enter * enter)
-    if not bound2 < np.inf:
+    if not bound2 * (1.0 + 1e-5) < near2:
         return False
     for c in range(4):
         wx, wy = quad[c, 0] - px, quad[c, 1] - py
-        phi = np.arctan2(cos_first * wy - sin_first * wx, cos_first * wx + sin_first * wy)  # from the first ray
-        if not (phi >= -_COVER_RAD and phi <= last - first + _COVER_RAD):
-            if phi < -_COVER_RAD or phi > last - first + _COVER_RAD:
-                continue  # beside every ray
+        margin2 = _COVER_RAD * _COVER_RAD * (wx * wx + wy * wy)
+        below = cos_first * wy - sin_first * wx  # < 0: clockwise of the first ray
+        above = cos_last * wy - sin_last * wx  # > 0: counter-clockwise of the last
+        if (below < 0.0 and below * below > margin2) or (above > 0.0 and above * above > margin2):
+            continue  # beside every ray (the extent spans less than pi: the signs order them)
+        phi = np.arctan2(below, cos_first * wx + sin_first * wy)  # from the first ray
+        if not (phi == phi):
             return False
         for r in range(rays):
             if abs(phi - width * r / n_rays) <= _COVER_RAD:

@@ -525,3 +525,110 @@ def test_relevance_in_one_call_equals_sampling_then_first_close(seed):
             want = hit.astype(np.float32) if mode == "bool" else np.where(
                 hit, 1.0 / (1.0 + (times - t_now)[np.maximum(first, 0)]), 0.0).astype(np.float32)
             np.testing.assert_array_equal(got, want)
+
+
+@njit
+def _sample_all_ec93cfa(waypoints, starts, times):
+    """``spatial._sample_all`` as it stood at ec93cfa."""
+    J, T = starts.shape[0] - 1, times.shape[0]
+    pos = np.empty((J, T, 2))
+    head = np.zeros((J, T))
+    for j in range(J):
+        a, b = starts[j], starts[j + 1]
+        n = b - a
+        seg = 0
+        for i in range(T):
+            t = times[i]
+            while seg < n - 1 and waypoints[a + seg + 1, 2] <= t:
+                seg += 1
+            if n == 1 or t <= waypoints[a, 2]:
+                pos[j, i, 0], pos[j, i, 1] = waypoints[a, 0], waypoints[a, 1]
+            elif seg >= n - 1:
+                pos[j, i, 0], pos[j, i, 1] = waypoints[b - 1, 0], waypoints[b - 1, 1]
+            else:
+                p, q = a + seg, a + seg + 1
+                w = (t - waypoints[p, 2]) / (waypoints[q, 2] - waypoints[p, 2])
+                pos[j, i, 0] = waypoints[p, 0] + w * (waypoints[q, 0] - waypoints[p, 0])
+                pos[j, i, 1] = waypoints[p, 1] + w * (waypoints[q, 1] - waypoints[p, 1])
+            if n >= 2:
+                p = a + min(seg, n - 2)
+                head[j, i] = np.arctan2(waypoints[p + 1, 1] - waypoints[p, 1], waypoints[p + 1, 0] - waypoints[p, 0])
+    return pos, head
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_sample_all_equals_the_kernel_it_replaced(seed):
+    """``_sample_all``, which takes a segment's arctangent once for all its samples,
+    against ec93cfa's: the same positions and headings, with one-waypoint trajectories,
+    repeated times, times before the first and after the last waypoint, and NaN."""
+    rng = np.random.default_rng(seed)
+    J = int(rng.integers(0, 8))
+    trajs = []
+    for _ in range(J):
+        p = int(rng.integers(1, 10))
+        t = np.sort(rng.choice([0.0, 0.5, 1.0, 2.0, 3.5, 8.0], p) + rng.choice([0.0, 0.1], p))
+        xy = np.cumsum(rng.normal(0, 5, (p, 2)), axis=0)
+        if rng.random() < 0.1:
+            xy[rng.integers(0, p)] = np.nan
+        trajs.append(np.column_stack([xy, t]))
+    wp = np.concatenate(trajs) if trajs else np.zeros((0, 3))
+    starts = np.zeros(J + 1, dtype=np.int64)
+    starts[1:] = np.cumsum([len(t) for t in trajs])
+    times = rng.uniform(-1, 1) + np.arange(0.0, 8.0 + 1e-9, 0.25)
+    got, want = spatial._sample_all(wp, starts, times), _sample_all_ec93cfa(wp, starts, times)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_sample_all_by_hand():
+    """A trajectory from (0, 0) at t=0 to (10, 10) at t=1 then (10, 20) at t=2: at 0.5 s
+    it is at (5, 5) heading 45 degrees, at 1.5 s at (10, 15) heading 90 degrees."""
+    wp = np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 1.0], [10.0, 20.0, 2.0]])
+    pos, head = spatial._sample_all(wp, np.array([0, 3]), np.array([0.5, 1.5]))
+    np.testing.assert_allclose(pos[0], [[5.0, 5.0], [10.0, 15.0]])
+    np.testing.assert_allclose(head[0], [np.pi / 4, np.pi / 2])
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_neighbors_in_domain_equals_take_of_in_domain(seed):
+    """``Neighbors.in_domain`` (one kernel) against ``take(in_domain(xy))``: the same
+    rows, arrays and dtypes, with vehicles on the domain's edge, NaN positions, all
+    inside (the same object back) and none inside."""
+    from vehicle_agent.dataplane import DOMAIN_RADIUS_M, GUARD_BAND_M, Neighbors, in_domain
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 12))
+    limit = DOMAIN_RADIUS_M + GUARD_BAND_M
+    spread = float(rng.choice([50.0, 120.0, 300.0]))
+    xy = rng.uniform(-spread, spread, (n, 2))
+    edge = rng.random(n) < 0.2
+    ang = rng.uniform(-np.pi, np.pi, n)
+    xy[edge] = np.column_stack([limit * np.cos(ang), limit * np.sin(ang)])[edge]
+    if n and rng.random() < 0.2:
+        xy[rng.integers(0, n)] = np.nan
+    lengths = rng.integers(1, 6, n)
+    starts = np.zeros(n + 1, dtype=np.int64)
+    starts[1:] = np.cumsum(lengths)
+    nb = Neighbors(np.sort(rng.choice(1000, n, replace=False)).astype(np.int64), xy,
+                   rng.normal(0, 10, (int(starts[-1]), 3)), starts, rng.random(n) < 0.5)
+    got, want = nb.in_domain(), nb.take(in_domain(nb.xy))
+    assert (got is nb) == (want is nb)
+    for name in ("vid", "xy", "waypoints", "starts", "fresh"):
+        x, y = getattr(got, name), getattr(want, name)
+        assert x.dtype == y.dtype and x.shape == y.shape, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+def test_neighbors_in_domain_by_hand():
+    """Of vehicles 80 m and 90 m from the centre, the first is in the domain (85 m +
+    1.8 m guard band), with its two waypoints."""
+    from vehicle_agent.dataplane import Neighbors
+
+    nb = Neighbors(np.array([3, 5]), np.array([[80.0, 0.0], [0.0, 90.0]]), np.arange(15.0).reshape(5, 3),
+                   np.array([0, 2, 5]), np.array([True, False]))
+    got = nb.in_domain()
+    np.testing.assert_array_equal(got.vid, [3])
+    np.testing.assert_array_equal(got.waypoints, np.arange(6.0).reshape(2, 3))
+    np.testing.assert_array_equal(got.starts, [0, 2])

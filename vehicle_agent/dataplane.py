@@ -68,6 +68,13 @@ class Neighbors:
     def trajectory(self, i: int) -> np.ndarray:
         return self.waypoints[self.starts[i]:self.starts[i + 1]]
 
+    def in_domain(self) -> Neighbors:
+        """``self.take(in_domain(self.xy))`` in one kernel call (``_take_in_domain``)."""
+        whole, vid, xy, waypoints, starts, fresh = _take_in_domain(
+            self.vid, self.xy, self.waypoints, self.starts, self.fresh, DOMAIN_CENTER_XY[0], DOMAIN_CENTER_XY[1],
+            DOMAIN_RADIUS_M + GUARD_BAND_M)
+        return self if whole else Neighbors(vid, xy, waypoints, starts, fresh)
+
     def take(self, keep: np.ndarray) -> Neighbors:
         """The rows where ``keep`` (bool (n,)) holds, in order."""
         if keep.all():  # every neighbour in the domain
@@ -113,6 +120,26 @@ class NeighborTable:
         xy, waypoints, placed_starts = _place(np.concatenate(trajs).astype(np.float64, copy=False).reshape(-1, 3),
                                               starts, np.array(poses, dtype=np.float64), fresh, float(t_now_s))
         return Neighbors(np.array(vids, dtype=np.int64), xy, waypoints, placed_starts, fresh)
+
+
+@njit(cache=True)
+def _take_in_domain(vid, xy, waypoints, starts, fresh, cx, cy, limit):
+    """``in_domain`` (np.hypot of the offsets from the centre, within ``limit``) of every
+    row, and whether all are; if not, the rows kept (``Neighbors.take``'s arrays)."""
+    keep = np.empty(len(vid), dtype=np.bool_)
+    for i in range(len(vid)):
+        keep[i] = np.hypot(xy[i, 0] - cx, xy[i, 1] - cy) <= limit
+    n = keep.sum()
+    if n == len(vid):
+        return True, vid, xy, waypoints, starts, fresh
+    out_vid, out_xy, out_fresh = np.empty(n, dtype=vid.dtype), np.empty((n, 2), dtype=xy.dtype), np.empty(n, np.bool_)
+    j = 0
+    for i in range(len(vid)):
+        if keep[i]:
+            out_vid[j], out_xy[j, 0], out_xy[j, 1], out_fresh[j] = vid[i], xy[i, 0], xy[i, 1], fresh[i]
+            j += 1
+    out_wp, out_starts = _take_packed(waypoints, starts, keep)
+    return False, out_vid, out_xy, out_wp, out_starts, out_fresh
 
 
 @njit(cache=True)
@@ -257,7 +284,7 @@ class DataPlane:
         the objects' dims and headings (``Track.heading_rad``) are worked out from them
         with the same operations, in a few calls instead of a few per track."""
         tracks = view.tracks
-        receivers = neighbors.take(in_domain(neighbors.xy))
+        receivers = neighbors.in_domain()
         dets = [t.detection for t in tracks]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
         sizes = payload_size(np.array([len(d.points_world) for d in dets], dtype=np.int64))

@@ -551,6 +551,7 @@ def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) ->
         a, b = starts[j], starts[j + 1]
         n = b - a
         seg = 0
+        heading, of = 0.0, -1  # the heading of segment ``of``: its arctangent once, not once per sample
         for i in range(T):
             t = times[i]
             while seg < n - 1 and waypoints[a + seg + 1, 2] <= t:  # last waypoint at or before t
@@ -566,7 +567,10 @@ def _sample_all(waypoints: np.ndarray, starts: np.ndarray, times: np.ndarray) ->
                 pos[j, i, 1] = waypoints[p, 1] + w * (waypoints[q, 1] - waypoints[p, 1])
             if n >= 2:
                 p = a + min(seg, n - 2)
-                head[j, i] = np.arctan2(waypoints[p + 1, 1] - waypoints[p, 1], waypoints[p + 1, 0] - waypoints[p, 0])
+                if p != of:
+                    heading, of = np.arctan2(waypoints[p + 1, 1] - waypoints[p, 1],
+                                             waypoints[p + 1, 0] - waypoints[p, 0]), p
+                head[j, i] = heading
     return pos, head
 
 

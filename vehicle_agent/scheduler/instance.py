@@ -325,6 +325,11 @@ def make_instance(
         all_vids.update(np.asarray(b.receivers).tolist())
     vid_arr = np.array(sorted(all_vids), dtype=np.int64)
     C = len(vid_arr)
+    if not history:
+        tables = _offer_tables(senders, vid_arr)
+        if tables is not None:  # the senders' tables as they come in control messages: one kernel
+            return _canonical(vid_arr, *tables, _p_table(p_deliver, vid_arr), bandwidth_bps, frame_duration_s,
+                              decision_interval_s)
     blocks, unseen = [], []
     for i, b in senders:
         y = np.zeros((len(b.object_id), C))
@@ -370,6 +375,110 @@ def make_instance(
         bandwidth_bps=bandwidth_bps,
         frame_duration_s=frame_duration_s,
         unseen=np.concatenate(unseen) if unseen else np.zeros(0),
+    )
+
+
+def _offer_tables(senders: list[tuple[int, SenderOffers]], vid_arr: np.ndarray) -> tuple | None:
+    """``make_instance``'s objects from arrays of senders given ascending, each sender's
+    objects ascending by id (how a group's control messages give them): owner, object
+    id, size, reward and unseen, as ``make_instance``'s per-sender numpy blocks and
+    ``instance_from_arrays`` compute them, in one kernel over the concatenated tables
+    (~15 numpy calls per sender were most of the schedule stage). None for anything
+    else (no sender, tables not (n, m) numeric arrays, senders or objects out of
+    order): the general path takes it."""
+    if not senders:
+        return None
+    vis, rel, n_objects, n_receivers = [], [], [], []
+    for _, b in senders:
+        v, r = b.visibility, b.relevance
+        n, m = len(b.object_id), len(b.receivers)
+        if type(v) is not np.ndarray or type(r) is not np.ndarray or v.shape != (n, m) or r.shape != (n, m):
+            return None
+        vis.append(v.ravel())
+        rel.append(r.ravel())
+        n_objects.append(n)
+        n_receivers.append(m)
+    visibility, relevance = np.concatenate(vis), np.concatenate(rel)
+    if visibility.dtype.kind != "f" or relevance.dtype.kind != "f" or visibility.dtype != relevance.dtype:
+        return None
+    object_id = np.concatenate([b.object_id for _, b in senders]).astype(np.int64, copy=False)
+    size_bytes = np.concatenate([b.size_bytes for _, b in senders]).astype(np.int64, copy=False)
+    receivers = np.concatenate([b.receivers for _, b in senders]).astype(np.int64, copy=False)
+    sender = np.array([i for i, _ in senders], dtype=np.int64)
+    counts = np.array([n_objects, n_receivers], dtype=np.int64)
+    owner, reward, hidden, canonical = _offer_kernel(vid_arr, sender, counts, object_id, receivers, visibility,
+                                                     relevance)
+    if not canonical:
+        return None
+    return owner, object_id, size_bytes, reward, hidden.sum(axis=1)  # summed in vid order, row by row
+
+
+@njit(cache=True)
+def _offer_kernel(vids, sender, counts, object_id, receivers, visibility, relevance):
+    """(owner, reward, hidden, canonical): per object, the index of its sender in
+    ``vids``; y = (1 - v) * r in the receivers' columns, 0 in the sender's own;
+    min(max(1 - v, 0), 1) likewise (``unseen`` is its row sums); and whether the
+    objects are in canonical order (senders strictly ascending, object ids ascending
+    within a sender). Tables are (n, m) row-major, sender after sender; a receiver
+    named twice keeps its last column, as numpy's ``y[:, cols] = ...`` does."""
+    C, K = vids.shape[0], object_id.shape[0]
+    owner = np.empty(K, dtype=np.int64)
+    reward = np.zeros((K, C))
+    hidden = np.zeros((K, C))
+    canonical = True
+    row, at_r, at_t = 0, 0, 0
+    for s in range(sender.shape[0]):
+        n, m = counts[0, s], counts[1, s]
+        own = np.searchsorted(vids, sender[s])
+        if s > 0 and sender[s] <= sender[s - 1]:
+            canonical = False
+        cols = np.searchsorted(vids, receivers[at_r:at_r + m])
+        for t in range(n):
+            k = row + t
+            owner[k] = own
+            if t > 0 and object_id[k] < object_id[k - 1]:
+                canonical = False
+            for c in range(m):
+                v = np.float64(visibility[at_t + t * m + c])
+                r = np.float64(relevance[at_t + t * m + c])
+                reward[k, cols[c]] = (1.0 - v) * r  # y = (1 - v) * r
+                a = 1.0 - v
+                if a < 0.0:  # np.maximum, then np.minimum: NaN stays NaN
+                    a = 0.0
+                if a > 1.0:
+                    a = 1.0
+                hidden[k, cols[c]] = a
+            hidden[k, own] = 0.0  # the sender sees its own object
+            reward[k, own] = 0.0  # i does not need its own object
+        row += n
+        at_r += m
+        at_t += n * m
+    return owner, reward, hidden, canonical
+
+
+def _p_table(p_deliver, vid_arr: np.ndarray) -> np.ndarray:
+    """float64 (C, C) p_ij over ``vid_arr``, 1 on the diagonal (``make_instance``'s)."""
+    ids = vid_arr.tolist()
+    C = len(ids)
+    if hasattr(p_deliver, "matrix"):
+        p = np.array(p_deliver.matrix(ids), dtype=np.float64).reshape(C, C)
+        np.fill_diagonal(p, 1.0)
+        return p
+    get_p = p_deliver if callable(p_deliver) else (lambda i, j: p_deliver[(i, j)])
+    return np.array([[1.0 if i == j else float(get_p(i, j)) for j in ids] for i in ids]).reshape(C, C)
+
+
+def _canonical(vid_arr: np.ndarray, owner: np.ndarray, object_id: np.ndarray, size_bytes: np.ndarray,
+               reward: np.ndarray, unseen: np.ndarray, p: np.ndarray, bandwidth_bps: float,
+               frame_duration_s: float, decision_interval_s: float) -> Instance:
+    """The instance of arrays already canonical (``_offer_tables``), as ``make_instance``
+    would have ``instance_from_arrays`` build it."""
+    return Instance(
+        vids=vid_arr, owner=owner, object_id=object_id, size_bytes=size_bytes, reward=reward, p_deliver=p,
+        history=np.zeros(reward.shape, dtype=bool),
+        frame_bytes=int(bandwidth_bps * frame_duration_s / 8.0),  # S_f = B * T_n
+        n_frames=int(decision_interval_s / frame_duration_s + 1e-9),  # N = T_d / T_n
+        frame_duration_s=float(frame_duration_s), bandwidth_bps=float(bandwidth_bps), unseen=unseen,
     )
 
 

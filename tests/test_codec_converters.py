@@ -8,6 +8,7 @@ bytes again) or refuse the payload with the same error message.
 
 from __future__ import annotations
 
+import dataclasses
 import random
 import types
 import typing
@@ -380,3 +381,62 @@ def test_a_slots_constructor_builds_what_init_builds_and_refuses_what_it_cannot(
     for cls in (Checked, NoSlots, NotInit, Inherits):
         with pytest.raises(TypeError, match=cls.__name__):
             codec.slots_constructor(cls)
+
+
+def _read_outcome(read, payload: bytes) -> tuple[str, Any]:
+    try:
+        got = read(payload)
+    except MalformedMessage as err:
+        return "malformed", str(err)
+    return "valid", got
+
+
+@given(seed=st.integers(0, 2**64 - 1))
+def test_a_fields_decoder_reads_and_refuses_as_decode_fields_does(seed):
+    """``fields_decoder`` (one generated function) against ``decode_fields`` (the
+    reference: envelope, then the fields' reader): the same fields, the same error text,
+    on valid control messages, fuzzed ones and other messages' payloads."""
+    from vehicle_agent.agreement import HeardControl
+
+    rnd = random.Random(seed)
+    name = "ControlMsg" if seed % 5 else rnd.choice([c.__name__ for c in fuzz.MESSAGE_TYPES])
+    payload = fuzz.valid_payload(name, rnd) if seed % 3 == 0 else fuzz.fuzz_input(name, rnd)
+    read = codec.fields_decoder(ControlMsg, HeardControl.FIELDS, HeardControl)
+    got = _read_outcome(read, payload)
+    want = _read_outcome(lambda raw: codec.decode_fields(raw, ControlMsg, HeardControl.FIELDS) + (raw,), payload)
+    if got[0] == "valid":
+        assert want[0] == "valid"
+        fields = [getattr(got[1], f.name) for f in dataclasses.fields(HeardControl)]
+        assert len(fields) == len(want[1])
+        for a, b in zip(fields, want[1]):
+            assert type(a) is type(b)
+            if isinstance(a, np.ndarray):
+                assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+                assert a.flags.writeable == b.flags.writeable
+            else:
+                assert repr(a) == repr(b)  # a float's repr is exact, and NaN's is NaN's
+    else:
+        assert got == want
+
+
+def test_a_fields_decoder_by_hand():
+    from vehicle_agent.agreement import HeardControl
+
+    read = codec.fields_decoder(ControlMsg, HeardControl.FIELDS, HeardControl)
+    om = ObjectMap(np.array([1]), np.array([70]), np.zeros((1, 2), np.float32), np.array([2]),
+                   np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32))
+    raw = encode(ControlMsg(4, 0.4, 3, Pose(1.0, 2.0, 0.5), 7.5, np.zeros((2, 3), np.float32), om,
+                            np.array([1, 2], np.int64)))
+    heard = read(raw)
+    assert (heard.tick, heard.t_sim_s, heard.vid, heard.pose, heard.speed_mps) == (4, 0.4, 3, Pose(1.0, 2.0, 0.5), 7.5)
+    assert heard.heard.tolist() == [1, 2] and heard.trajectory.shape == (2, 3) and heard.raw is raw
+    body = msgpack.unpackb(raw)
+    body[9] = ["<i4", [2], b"\0" * 8]  # heard of the wrong dtype
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.heard: expected int64"):
+        read(msgpack.packb(body))
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg needs 10 fields"):
+        read(msgpack.packb(body[:-1]))
+    with pytest.raises(MalformedMessage, match=r"^not msgpack"):
+        read(raw[:-3])
+    with pytest.raises(MalformedMessage, match=r"^expected ControlMsg, got "):
+        read(msgpack.packb([1, 1, 0.0]))

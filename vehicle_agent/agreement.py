@@ -64,7 +64,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
-from protocol.codec import MalformedMessage, decode, decode_fields, slots_constructor
+from protocol.codec import MalformedMessage, decode, fields_decoder
 from protocol.messages import ControlMsg, Pose
 from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
 
@@ -192,14 +192,14 @@ class HeardControl:
     @staticmethod
     def read(raw: bytes) -> HeardControl:
         """Raises ``MalformedMessage`` if the envelope or one of these fields is."""
-        return _new_heard(*decode_fields(raw, ControlMsg, HeardControl.FIELDS), raw)
+        return _read_heard(raw)
 
     def message(self) -> ControlMsg:
         """The whole message; raises ``MalformedMessage`` (its object map, say)."""
         return decode(self.raw, ControlMsg)
 
 
-_new_heard = slots_constructor(HeardControl)  # HeardControl(...) without the frozen __init__'s cost
+_read_heard = fields_decoder(ControlMsg, HeardControl.FIELDS, HeardControl)  # one generated function a message
 
 
 def offers_of(msg: ControlMsg) -> SenderOffers:

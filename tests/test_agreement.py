@@ -321,7 +321,9 @@ def test_the_grouping_draws_are_the_channels_keyed_draws(tick, vids, salt):
     np.testing.assert_array_equal(got, keyed_uniform(salt, tick, np.array(vids, dtype=np.int64)))
 
 
-@given(ballots=st.dictionaries(st.integers(0, 60), st.lists(st.integers(0, 60), max_size=40), max_size=40),
+@given(ballots=st.dictionaries(st.integers(0, 60), st.lists(st.integers(0, 60), max_size=40), max_size=40)
+       | st.dictionaries(st.integers(-5, 70_000), st.lists(st.sampled_from([-2, 0, 3, 65_535, 65_536, 69_999]),
+                                                             max_size=8), max_size=8),
        sort=st.booleans(), quorum=st.sampled_from([0.0, 0.1, 0.5, 1.0]))
 def test_members_equal_counting_each_ballots_distinct_others(ballots, sort, quorum):
     """members against its definition, ballot by ballot: ascending heard lists (as
@@ -340,6 +342,20 @@ def test_members_equal_counting_each_ballots_distinct_others(ballots, sort, quor
     want = sorted(v for v, n in votes.items() if n >= need)
     got = members({a: np.array(h, dtype=np.int64) for a, h in ballots.items()}, quorum)
     assert got.dtype == np.int64 and got.tolist() == want
+
+
+def test_the_quorum_kernel_by_hand():
+    """Ballots of 1: [2, 3], 2: [1, 2, 3] (its own listing does not count), 3: [2, 2]
+    (one vote): 2 has the votes of 1 and 3, 3 of 1 and 2, 1 of 2 alone."""
+    from vehicle_agent.agreement import _listed_by_quorum
+
+    author = np.array([1, 2, 3], dtype=np.int64)
+    vid = np.array([2, 3, 1, 2, 3, 2, 2], dtype=np.int64)
+    lengths = np.array([2, 3, 2], dtype=np.int64)
+    assert _listed_by_quorum(author, vid, lengths, 2).tolist() == [2, 3]
+    assert _listed_by_quorum(author, vid, lengths, 1).tolist() == [1, 2, 3]
+    assert _listed_by_quorum(author, vid, lengths, 3).tolist() == []
+    assert _listed_by_quorum(author, np.array([2, 3, 1, 2, 1 << 16, 2, 2]), lengths, 1) is None  # numpy's to count
 
 
 def _broken_map(m: ControlMsg) -> bytes:
@@ -430,3 +446,63 @@ def test_an_object_map_whose_rows_do_not_fit_is_refused_when_opened_and_never_se
         ObjectMap(om.object_id, om.size_bytes, om.centroid_xy, om.receivers, om.visibility, om.relevance[:, :1])
     with pytest.raises(TypeError, match=r"ControlMsg\.trajectory: expected float32 \(n, 3\), got float64"):
         encode(ControlMsg(5, 0.5, 1, m.pose, 0.0, np.zeros((2, 3)), om, m.heard))
+
+
+def agreed_state_reference(decision):
+    """``agreed_state`` as it was (ec93cfa): numpy arrays per message, one lexsort."""
+    from vehicle_agent.scheduler import SchedulerState
+
+    if len(decision.group) == 0:
+        return SchedulerState()
+    first = int(decision.group[decision.tick % len(decision.group)])
+    vid, oid, m = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for v, one in decision.messages.items():
+        counts = one.starvation()
+        starved = counts > 0
+        vid.append(np.full(int(starved.sum()), v, dtype=np.int64))
+        oid.append(np.asarray(one.objects.object_id, dtype=np.int64)[starved])
+        m.append(counts[starved])
+    vid, oid, m = np.concatenate(vid), np.concatenate(oid), np.concatenate(m)
+    order = np.lexsort((oid, vid))
+    return SchedulerState(np.stack([vid[order], oid[order]], axis=1), m[order], cursor=(first, -(1 << 62)))
+
+
+@given(data=st.data(), n_senders=st.integers(1, 5), tick=st.integers(0, 50))
+def test_agreed_state_is_the_numpy_one(data, n_senders, tick):
+    """agreed_state against the per-message numpy version it replaced: the same keys and
+    counts, bit for bit, for counts reported right, negative, of the wrong length or
+    dtype, and object ids out of order or repeated."""
+    from vehicle_agent.agreement import Decision
+
+    vids = sorted(data.draw(st.lists(st.integers(0, 40), min_size=n_senders, max_size=n_senders, unique=True)))
+    messages = {}
+    for v in vids:
+        n = data.draw(st.integers(0, 6))
+        ids = data.draw(st.lists(st.integers(0, 9), min_size=n, max_size=n))
+        one = msg(v, tick, [], [(k, 10, {}) for k in ids])
+        kind = data.draw(st.sampled_from(["right", "empty", "short", "int32", "column"]))
+        counts = np.array(data.draw(st.lists(st.integers(-2, 4), min_size=n, max_size=n)), dtype=np.int64)
+        unscheduled = {"right": counts, "empty": counts[:0], "short": counts[:-1], "int32": counts.astype(np.int32),
+                       "column": counts.reshape(-1, 1)}[kind]
+        messages[v] = ControlMsg(one.tick, one.t_sim_s, v, one.pose, 0.0, one.trajectory, one.objects, one.heard,
+                                 unscheduled)
+    group = np.array(vids, dtype=np.int64)
+    d = Decision(tick, vids[0], group, group, (0,), np.zeros(0, np.int64), messages)
+    got, want = agreed_state(d), agreed_state_reference(d)
+    assert got.cursor == want.cursor
+    for a, b in ((got.starved_key, want.starved_key), (got.starved_m, want.starved_m)):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        assert a.flags.c_contiguous == b.flags.c_contiguous
+
+
+def test_agreed_state_by_hand():
+    """3 reports m = 2 for its object 8 and 0 for 5; 1 reports m = 1 for 4: keys by (vid, id)."""
+    from vehicle_agent.agreement import Decision
+
+    a = msg(1, 6, [], [(4, 10, {3: 1.0})], unscheduled={4: 1})
+    c = msg(3, 6, [], [(8, 10, {1: 1.0}), (5, 10, {1: 1.0})], unscheduled={8: 2})
+    group = np.array([1, 3], dtype=np.int64)
+    d = Decision(6, 1, group, group, (0,), np.zeros(0, np.int64), {3: c, 1: a})
+    state = agreed_state(d)
+    assert state.starved_key.tolist() == [[1, 4], [3, 8]] and state.starved_m.tolist() == [1, 2]
+    assert state.cursor == (1, -(1 << 62))  # group[6 mod 2]

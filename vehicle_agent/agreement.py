@@ -62,6 +62,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
 from protocol.codec import MalformedMessage, decode, fields_decoder
@@ -111,6 +112,13 @@ def members(ballots: Mapping[int, Iterable[int]], quorum: float) -> np.ndarray:
     author's listing of itself does not count: a member is a vehicle others heard."""
     if not ballots:
         return np.zeros(0, dtype=np.int64)
+    need = max(1, math.ceil(quorum * len(ballots) - 1e-9))
+    lists = list(ballots.values())
+    if all(type(h) is np.ndarray and h.dtype == np.int64 and h.ndim == 1 for h in lists):  # as messages carry them
+        got = _listed_by_quorum(np.fromiter(ballots, dtype=np.int64, count=len(ballots)), np.concatenate(lists),
+                                np.array([len(h) for h in lists], dtype=np.int64), need)
+        if got is not None:
+            return got
     listed = [np.asarray(h if isinstance(h, np.ndarray) else list(h), dtype=np.int64).ravel()
               for h in ballots.values()]
     lengths = [len(h) for h in listed]
@@ -131,8 +139,40 @@ def members(ballots: Mapping[int, Iterable[int]], quorum: float) -> np.ndarray:
         first = np.ones(len(vid), dtype=bool)
         first[1:] = (vid[1:] != vid[:-1]) | (author[1:] != author[:-1])
         vids, votes = np.unique(vid[first], return_counts=True)
-    need = max(1, math.ceil(quorum * len(ballots) - 1e-9))
     return vids[votes >= need].astype(np.int64)
+
+
+@njit(cache=True)
+def _listed_by_quorum(author, vid, lengths, need):
+    """``members`` of ballots whose lists are concatenated in ``vid`` (``lengths`` each,
+    by ``author``): the vehicles at least ``need`` ballots list, not counting an author's
+    listing of itself nor a ballot's second listing of a vehicle; ascending. None if a
+    listed id lies outside [0, 2^16) (``members`` counts those with numpy)."""
+    top = -1
+    for e in range(vid.shape[0]):
+        if vid[e] < 0 or vid[e] >= 1 << 16:
+            return None
+        top = max(top, vid[e])
+    votes = np.zeros(top + 1, dtype=np.int64)
+    last = np.full(top + 1, -1, dtype=np.int64)  # the last ballot that listed each vehicle
+    e = 0
+    for b in range(lengths.shape[0]):
+        for _ in range(lengths[b]):
+            v = vid[e]
+            e += 1
+            if v != author[b] and last[v] != b:
+                last[v] = b
+                votes[v] += 1
+    n = 0
+    for v in range(top + 1):
+        n += votes[v] >= need
+    out = np.empty(n, dtype=np.int64)
+    n = 0
+    for v in range(top + 1):
+        if votes[v] >= need:
+            out[n] = v
+            n += 1
+    return out
 
 
 def _each_ascending(values: np.ndarray, lengths: list[int]) -> bool:
@@ -289,8 +329,13 @@ def agreed_p(decision: Decision, config: AgreementConfig) -> AgreedLinks:
     between two group members' reported poses, the model at the domain radius otherwise."""
     known = sorted(decision.messages)
     xy = np.array([[decision.messages[v].pose.x_m, decision.messages[v].pose.y_m] for v in known]).reshape(-1, 2)
-    return AgreedLinks({v: n for n, v in enumerate(known)}, link_probabilities(xy, config.prr),
-                       float(config.prr.prr(config.domain_radius_m)))
+    outside = _OUTSIDE.get(config)
+    if outside is None:
+        outside = _OUTSIDE[config] = float(config.prr.prr(config.domain_radius_m))
+    return AgreedLinks({v: n for n, v in enumerate(known)}, link_probabilities(xy, config.prr), outside)
+
+
+_OUTSIDE: dict[AgreementConfig, float] = {}  # the model at the domain radius, by configuration: one a process
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,16 +369,18 @@ def agreed_state(decision: Decision) -> SchedulerState:
     if len(decision.group) == 0:
         return SchedulerState()
     first = int(decision.group[decision.tick % len(decision.group)])
-    vid, oid, m = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    starved = []  # (vid, object id, m) of each object its sender reports m > 0 for, in message order
     for v, msg in decision.messages.items():
-        counts = msg.starvation()
-        starved = counts > 0
-        vid.append(np.full(int(starved.sum()), v, dtype=np.int64))
-        oid.append(np.asarray(msg.objects.object_id, dtype=np.int64)[starved])
-        m.append(counts[starved])
-    vid, oid, m = np.concatenate(vid), np.concatenate(oid), np.concatenate(m)
-    order = np.lexsort((oid, vid))  # SchedulerState keeps its keys ascending by (vid, object id)
-    return SchedulerState(np.stack([vid[order], oid[order]], axis=1), m[order], cursor=(first, _BEFORE_ANY_OBJECT))
+        ids, u = msg.objects.object_id, msg.unscheduled
+        if type(u) is np.ndarray and u.dtype == np.int64 and u.shape == (len(ids),):
+            counts = u.tolist()  # msg.starvation() without its copies: max(m, 0) > 0 where m > 0
+        else:
+            counts = msg.starvation().tolist()
+        if any(c > 0 for c in counts):  # a few numbers: plain Python, not a dozen numpy calls
+            starved += [(v, k, c) for k, c in zip(np.asarray(ids, dtype=np.int64).tolist(), counts) if c > 0]
+    starved.sort(key=lambda s: (s[0], s[1]))  # SchedulerState keeps its keys ascending by (vid, object id); stable
+    key = np.array([(v, k) for v, k, _ in starved], dtype=np.int64).reshape(-1, 2)
+    return SchedulerState(key, np.array([c for _, _, c in starved], dtype=np.int64), cursor=(first, _BEFORE_ANY_OBJECT))
 
 
 def unscheduled_after(own: ControlMsg, sent: Iterable[int]) -> dict[int, int]:

@@ -373,14 +373,15 @@ def _packed_converter(spec: Array) -> Converter:
         n_other = other.bit_count()
         if n_other * dtype.itemsize != len(raw):
             _bad(f"{len(raw)} bytes of values for {n_other} entries")
-        out = np.zeros(count, dtype)
-        if one:
-            out[np.unpackbits(np.frombuffer(ones, np.uint8), count=count).view(np.bool_)] = 1.0
-        if other:
-            bits = np.frombuffer(raw, uint)
-            if ((bits == 0) | (bits == one_bits)).any():
-                _bad("a value of 1.0 or +0.0 among the others")
-            out[np.unpackbits(np.frombuffer(others, np.uint8), count=count).view(np.bool_)] = bits.view(dtype)
+        if not other:  # the 0/1 entries straight from the unpacked mask (a table of relevance, mostly)
+            return np.unpackbits(np.frombuffer(ones, np.uint8), count=count).astype(dtype).reshape(shape)
+        bits = np.frombuffer(raw, uint)
+        listed = bits.tolist()  # a few dozen values: two scans of a list, not four numpy calls
+        if 0 in listed or one_bits in listed:
+            _bad("a value of 1.0 or +0.0 among the others")
+        both = np.unpackbits(np.frombuffer(ones + others, np.uint8)).reshape(2, -1)[:, :count]  # one call for both
+        out = both[0].astype(dtype)
+        out[both[1].view(np.bool_)] = bits.view(dtype)
         return out.reshape(shape)
 
     return convert

@@ -440,3 +440,96 @@ def test_a_fields_decoder_by_hand():
         read(raw[:-3])
     with pytest.raises(MalformedMessage, match=r"^expected ControlMsg, got "):
         read(msgpack.packb([1, 1, 0.0]))
+
+
+def _packed_reference(spec: codec.Array):
+    """codec._packed_converter as it was (ec93cfa): zeros, then each mask's entries set."""
+    import math
+
+    dtype, ndim = np.dtype(spec.dtype), len(spec.shape)
+    fixed = [(axis, d) for axis, d in enumerate(spec.shape) if d is not None]
+    uint, one_bits = codec._BITS_OF[spec.dtype]
+
+    def convert(value):
+        if type(value) is not list or len(value) != 5:
+            codec._bad("expected a packed array [dtype, shape, ones, others, values]")
+        dtype_str, shape, ones, others, raw = value
+        if dtype_str != spec.dtype:
+            codec._bad(f"expected a packed {spec}, got dtype {codec._brief(dtype_str)}")
+        if type(ones) is not bytes or type(others) is not bytes or type(raw) is not bytes:
+            codec._bad("a packed array's masks and values are bytes")
+        if type(shape) is not list or len(shape) != ndim or any(type(d) is not int or d < 0 for d in shape) \
+                or any(shape[axis] != d for axis, d in fixed):
+            codec._bad(f"expected a packed {spec}, got shape {codec._brief(shape)}")
+        count = math.prod(shape)
+        if len(ones) != (count + 7) // 8 or len(others) != len(ones):
+            codec._bad(f"masks of {len(ones)} and {len(others)} bytes for {count} entries")
+        one, other = int.from_bytes(ones, "big"), int.from_bytes(others, "big")
+        if (one | other) & ((1 << (8 * len(ones) - count)) - 1):
+            codec._bad("mask padding bits set")
+        if one & other:
+            codec._bad("an entry marked both 1 and other")
+        n_other = other.bit_count()
+        if n_other * dtype.itemsize != len(raw):
+            codec._bad(f"{len(raw)} bytes of values for {n_other} entries")
+        out = np.zeros(count, dtype)
+        if one:
+            out[np.unpackbits(np.frombuffer(ones, np.uint8), count=count).view(np.bool_)] = 1.0
+        if other:
+            bits = np.frombuffer(raw, uint)
+            if ((bits == 0) | (bits == one_bits)).any():
+                codec._bad("a value of 1.0 or +0.0 among the others")
+            out[np.unpackbits(np.frombuffer(others, np.uint8), count=count).view(np.bool_)] = bits.view(dtype)
+        return out.reshape(shape)
+
+    return convert
+
+
+_PACKED = [codec.Array("<f4", (None, None), packed=True), codec.Array("<f8", (None, 3), packed=True)]
+
+
+def _packed_outcome(convert, value):
+    try:
+        arr = convert(value)
+    except codec._FieldError as err:
+        return "bad", err.text
+    return "ok", (arr.dtype.str, arr.shape, arr.tobytes(), arr.flags.writeable, arr.flags.c_contiguous)
+
+
+@given(spec=st.sampled_from(_PACKED), rows=st.integers(0, 6), cols=st.integers(0, 5), data=st.data(),
+       mutation=st.sampled_from(["none", "none", "value", "padding", "overlap", "short", "shape"]))
+def test_a_packed_table_decodes_and_is_refused_as_before(spec, rows, cols, data, mutation):
+    """The packed converter (one unpack of both masks, the 0/1 table straight from its
+    mask) against the one it replaced: the same array, bit for bit, or the same error."""
+    cols = spec.shape[1] or cols
+    pick = st.sampled_from([0.0, 1.0, -0.0, 0.5, float("nan"), 3.0, float("inf")])
+    arr = np.array(data.draw(st.lists(pick, min_size=rows * cols, max_size=rows * cols)),
+                   dtype=spec.dtype).reshape(rows, cols)
+    value = codec._packed_to_wire(arr)
+    n_bytes = len(value[2])
+    if mutation == "value" and value[4]:
+        one = codec._BITS_OF[spec.dtype][1].to_bytes(np.dtype(spec.dtype).itemsize, "little")
+        value[4] = one + value[4][len(one):]
+    elif mutation == "padding" and n_bytes and (rows * cols) % 8:
+        value[3] = value[3][:-1] + bytes([value[3][-1] | 1])
+    elif mutation == "overlap" and n_bytes:
+        value[2] = bytes(b | o for b, o in zip(value[2], value[3])) if any(value[3]) else value[2]
+        value[3] = bytes(255 for _ in value[3])
+    elif mutation == "short" and value[4]:
+        value[4] = value[4][:-1]
+    elif mutation == "shape":
+        value[1] = [rows, cols, 1]
+    got = _packed_outcome(codec._packed_converter(spec), value)
+    assert got == _packed_outcome(_packed_reference(spec), value)
+    if mutation == "none":
+        assert got[0] == "ok" and got[1][2] == arr.tobytes()
+
+
+def test_a_packed_table_by_hand():
+    convert = codec._packed_converter(codec.Array("<f4", (None, None), packed=True))
+    # 2 x 3: ones at entries 0 and 4 (0b10001000), others at 2 (0b00100000) of value 0.5
+    got = convert(["<f4", [2, 3], bytes([0b10001000]), bytes([0b00100000]), np.float32(0.5).tobytes()])
+    assert got.tolist() == [[1.0, 0.0, 0.5], [0.0, 1.0, 0.0]] and got.dtype == np.float32
+    assert convert(["<f4", [1, 2], bytes([0b01000000]), b"\0", b""]).tolist() == [[0.0, 1.0]]
+    with pytest.raises(codec._FieldError, match="a value of 1.0 or"):
+        convert(["<f4", [1, 1], b"\0", bytes([0b10000000]), np.float32(1.0).tobytes()])

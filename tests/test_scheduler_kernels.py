@@ -154,3 +154,38 @@ def test_a_reward_out_of_range_is_refused_as_before(value):
                               np.full((1, 1), value, np.float32))}
     with pytest.raises(ValueError, match="reward must lie in"):
         make_instance(offers, Links(0))
+
+
+def fill_order_reference(instance, cursor=None):
+    """``fill_order`` as it was (ec93cfa): the rank of each object in round_robin_order."""
+    from vehicle_agent.scheduler.agnostic import round_robin_order
+
+    rotation = np.empty(instance.n_objects, dtype=np.int64)
+    rotation[round_robin_order(instance, cursor)] = np.arange(instance.n_objects)
+    return np.lexsort((rotation, -(instance.unseen / instance.size_bytes)))
+
+
+@given(group_offers(), st.none() | st.tuples(st.integers(-1, 62), st.integers(-1, 1001)))
+def test_fill_order_is_the_round_robin_ranks_order(case, cursor):
+    from vehicle_agent.scheduler import fill_order
+
+    offers, extra, seed = case
+    try:
+        inst = make_instance(offers, Links(seed), vids=extra)
+    except ValueError:
+        return  # NaN or out-of-range shares: no instance
+    got, want = fill_order(inst, cursor), fill_order_reference(inst, cursor)
+    assert got.dtype == want.dtype and got.tolist() == want.tolist()
+
+
+def test_fill_order_by_hand():
+    from vehicle_agent.scheduler import fill_order
+
+    # three objects of 1 unseen vehicle each and equal size: round-robin order after (2, 5)
+    offers = {2: SenderOffers(np.array([5, 6]), np.array([10, 10]), np.array([3]), np.zeros((2, 1), np.float32),
+                              np.ones((2, 1), np.float32)),
+              3: SenderOffers(np.array([1]), np.array([10]), np.array([2]), np.zeros((1, 1), np.float32),
+                              np.ones((1, 1), np.float32))}
+    inst = make_instance(offers, Links(0))
+    assert fill_order(inst, (2, 5)).tolist() == [1, 2, 0]  # (2, 6), (3, 1), then (2, 5)
+    assert fill_order(inst).tolist() == [0, 1, 2]

@@ -65,7 +65,7 @@ import numpy as np
 from numba import njit
 
 from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
-from protocol.codec import MalformedMessage, decode, fields_decoder
+from protocol.codec import MalformedMessage, decode, fields_decoder, slots_constructor
 from protocol.messages import ControlMsg, Pose
 from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
 
@@ -422,5 +422,8 @@ def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
     for t in layout.sent_by(decision.vid):
         frame = decision.frames[t.frame]
         offset = t.start_s - t.frame * layout.frame_duration_s
-        out.append(PlannedTx(t.object_id, frame * config.frame_duration_s + offset, t.size_bytes, frame))
+        out.append(_new_planned(t.object_id, frame * config.frame_duration_s + offset, t.size_bytes, frame))
     return tuple(out)
+
+
+_new_planned = slots_constructor(PlannedTx)

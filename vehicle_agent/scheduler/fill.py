@@ -23,7 +23,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from vehicle_agent.scheduler.agnostic import round_robin_order
 from vehicle_agent.scheduler.instance import Instance, ObjectKey, Schedule
 
 
@@ -56,8 +55,13 @@ def _fill_frames(order, size_bytes, room, taken):
 
 def fill_order(instance: Instance, cursor: ObjectKey | None = None) -> np.ndarray:
     """Object indices by decreasing unseen / s, ties in round-robin order after ``cursor``."""
-    rotation = np.empty(instance.n_objects, dtype=np.int64)
-    rotation[round_robin_order(instance, cursor)] = np.arange(instance.n_objects)
+    K = instance.n_objects
+    if cursor is None or K == 0:
+        rotation = np.arange(K)
+    else:  # round_robin_order's rank of each object: (k - start) mod K, without its roll and scatter
+        v, o = instance.vids[instance.owner], instance.object_id
+        start = int(np.count_nonzero((v < cursor[0]) | ((v == cursor[0]) & (o <= cursor[1]))))
+        rotation = (np.arange(K) - start) % K
     return np.lexsort((rotation, -(instance.unseen / instance.size_bytes)))
 
 
@@ -66,12 +70,14 @@ def work_conserving(instance: Instance, primary: Schedule, cursor: ObjectKey | N
     if instance.n_objects == 0 or instance.n_frames == 0:
         return primary
     frames = [list(f) for f in primary.frames] + [[] for _ in range(instance.n_frames - len(primary.frames))]
-    used = np.array([int(instance.size_bytes[f].sum()) if f else 0 for f in frames], dtype=np.int64)
-    taken = np.zeros(instance.n_objects, dtype=np.bool_)
+    sizes = instance.size_bytes.tolist()
+    room = np.array([instance.frame_bytes - sum(sizes[k] for k in f) for f in frames], dtype=np.int64)
+    taken = instance.size_bytes > instance.frame_bytes
     taken[list(primary.sent())] = True
-    taken |= instance.size_bytes > instance.frame_bytes
-    at = _fill_frames(fill_order(instance, cursor), instance.size_bytes, instance.frame_bytes - used, taken)
+    at = _fill_frames(fill_order(instance, cursor), instance.size_bytes, room, taken)
     fill = [[] for _ in frames]
-    for k in np.flatnonzero(at >= 0).tolist():
-        fill[int(at[k])].append(k)
-    return Schedule(tuple(tuple(sorted(f + g)) for f, g in zip(frames, fill)), tuple(tuple(g) for g in fill))
+    for k, n in enumerate(at.tolist()):
+        if n >= 0:
+            fill[n].append(k)
+    return Schedule(tuple(tuple(sorted(f + g)) for f, g in zip(frames, fill)),
+                    tuple(tuple(g) for g in fill))

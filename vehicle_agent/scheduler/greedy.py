@@ -142,7 +142,10 @@ def greedy_schedule(instance: Instance, starvation: np.ndarray | None = None) ->
         np.int64(instance.frame_bytes),
         np.int64(instance.n_frames),
     )
-    return Schedule(tuple(tuple(np.flatnonzero(row).tolist()) for row in x))
+    frames: list[list[int]] = [[] for _ in range(instance.n_frames)]
+    for n, k in zip(*(a.tolist() for a in np.nonzero(x))):  # row by row, each row's objects ascending
+        frames[n].append(k)
+    return Schedule(tuple(tuple(f) for f in frames))
 
 
 @register("greedy")

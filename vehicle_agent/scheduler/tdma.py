@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from protocol.codec import slots_constructor
 from vehicle_agent.scheduler.instance import Instance, Schedule
 
 
@@ -66,18 +67,22 @@ def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
     vids = instance.vids.tolist()
     oids = instance.object_id.tolist()
     sizes = instance.size_bytes.tolist()
+    bandwidth_bps = instance.bandwidth_bps
     out: list[Transmission] = []
     for n, frame in enumerate(schedule.frames):
         spare = set(schedule.filled(n))
         t = n * frame_s
-        for part in ([k for k in frame if k not in spare], sorted(spare)):
+        for part in ([k for k in frame if k not in spare], sorted(spare)) if spare else (frame,):
             by_sender: dict[int, list[int]] = {}
             for k in part:
                 by_sender.setdefault(owner[k], []).append(k)
             senders = sorted(by_sender, key=lambda i: (-sum(total_reward[k] for k in by_sender[i]), vids[i]))
             for i in senders:
                 for k in sorted(by_sender[i], key=lambda k: (-total_reward[k], oids[k])):
-                    duration = sizes[k] * 8.0 / instance.bandwidth_bps
-                    out.append(Transmission(n, vids[i], oids[k], k, t, duration, sizes[k]))
+                    duration = sizes[k] * 8.0 / bandwidth_bps
+                    out.append(_new_transmission(n, vids[i], oids[k], k, t, duration, sizes[k]))
                     t += duration
     return TdmaPlan(tuple(out), frame_s)
+
+
+_new_transmission = slots_constructor(Transmission)  # Transmission(...) without the frozen __init__'s setattr calls

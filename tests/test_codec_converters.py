@@ -533,3 +533,37 @@ def test_a_packed_table_by_hand():
     assert convert(["<f4", [1, 2], bytes([0b01000000]), b"\0", b""]).tolist() == [[0.0, 1.0]]
     with pytest.raises(codec._FieldError, match="a value of 1.0 or"):
         convert(["<f4", [1, 1], b"\0", bytes([0b10000000]), np.float32(1.0).tobytes()])
+
+
+@pytest.mark.parametrize("field, value, accepted", [
+    ("trajectory", np.zeros((2, 3), np.float32), True),
+    ("trajectory", np.zeros((4, 3), np.float32)[::2], True),  # strided: made contiguous
+    ("trajectory", np.zeros((0, 3), np.float32), True),
+    ("trajectory", np.zeros((2, 3), ">f4"), False),  # the declared dtype's other byte order
+    ("trajectory", np.zeros((2, 2), np.float32), False),
+    ("trajectory", np.zeros(6, np.float32), False),
+    ("trajectory", np.zeros((2, 3), np.float64), False),
+    ("trajectory", np.ma.zeros((2, 3), np.float32), False),  # a subclass takes the checked path: accepted there
+    ("heard", np.array([1, 2], np.int32), False),
+    ("heard", [1, 2], False),
+])
+def test_an_array_field_is_written_or_refused_as_the_checked_path_does(field, value, accepted):
+    """The generated encoder's inline dtype and shape test against ``Array.fits``
+    (``_checked_array_to_wire``): the same bytes, or the same ``TypeError``."""
+    om = ObjectMap(np.array([1]), np.array([70]), np.zeros((1, 2), np.float32), np.array([2]),
+                   np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32))
+    msg = ControlMsg(1, 0.1, 3, Pose(0.0, 0.0, 0.0), 1.0, np.zeros((1, 3), np.float32), om, np.array([1], np.int64))
+    object.__setattr__(msg, field, value)
+    spec = codec.array_spec(dict(codec._hints(ControlMsg))[field])
+    try:
+        want = ("ok", msgpack.packb([7, 4] + [codec._checked_array_to_wire(spec, value, f"ControlMsg.{field}")
+                                              if name == field else codec._to_wire(getattr(msg, name))
+                                              for name, _ in codec._hints(ControlMsg)], use_bin_type=True))
+    except TypeError as exc:
+        want = ("refused", str(exc))
+    try:
+        got = ("ok", encode(msg))
+    except TypeError as exc:
+        got = ("refused", str(exc))
+    assert got == want
+    assert (got[0] == "ok") == (accepted or isinstance(value, np.ma.MaskedArray))

@@ -114,11 +114,13 @@ def members(ballots: Mapping[int, Iterable[int]], quorum: float) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     need = max(1, math.ceil(quorum * len(ballots) - 1e-9))
     lists = list(ballots.values())
-    if all(type(h) is np.ndarray and h.dtype == np.int64 and h.ndim == 1 for h in lists):  # as messages carry them
-        got = _listed_by_quorum(np.fromiter(ballots, dtype=np.int64, count=len(ballots)), np.concatenate(lists),
-                                np.array([len(h) for h in lists], dtype=np.int64), need)
-        if got is not None:
-            return got
+    if all(type(h) is np.ndarray and h.ndim == 1 for h in lists):  # as messages carry them: int64 arrays
+        vid = np.concatenate(lists)
+        if vid.dtype == np.int64:  # each list's values as np.asarray(h, dtype=np.int64) gives them
+            got = _listed_by_quorum(np.fromiter(ballots, dtype=np.int64, count=len(ballots)), vid,
+                                    np.array([len(h) for h in lists], dtype=np.int64), need)
+            if got is not None:
+                return got
     listed = [np.asarray(h if isinstance(h, np.ndarray) else list(h), dtype=np.int64).ravel()
               for h in ballots.values()]
     lengths = [len(h) for h in listed]

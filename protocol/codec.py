@@ -372,8 +372,16 @@ def _packed_converter(spec: Array) -> Converter:
             _bad(f"expected a packed {spec}, got dtype {_brief(dtype_str)}")
         if type(ones) is not bytes or type(others) is not bytes or type(raw) is not bytes:
             _bad("a packed array's masks and values are bytes")
-        if type(shape) is not list or len(shape) != ndim or any(type(d) is not int or d < 0 for d in shape) \
-                or any(shape[axis] != d for axis, d in fixed):
+        fits = type(shape) is list and len(shape) == ndim
+        if fits:  # loops, not any(<genexpr>): a vehicle reads two tables of each of its group's messages
+            for d in shape:
+                if type(d) is not int or d < 0:
+                    fits = False
+                    break
+            for axis, d in fixed:
+                if fits and shape[axis] != d:
+                    fits = False
+        if not fits:
             _bad(f"expected a packed {spec}, got shape {_brief(shape)}")
         count = math.prod(shape)
         if len(ones) != (count + 7) // 8 or len(others) != len(ones):  # checked before anything is built

@@ -506,3 +506,57 @@ def test_agreed_state_by_hand():
     state = agreed_state(d)
     assert state.starved_key.tolist() == [[1, 4], [3, 8]] and state.starved_m.tolist() == [1, 2]
     assert state.cursor == (1, -(1 << 62))  # group[6 mod 2]
+
+
+def unscheduled_after_reference(own, sent):
+    """``unscheduled_after`` as it was (ec93cfa): numpy masks over the objects."""
+    om = own.objects
+    y = (1.0 - np.asarray(om.visibility, dtype=np.float64)) * np.asarray(om.relevance, dtype=np.float64)
+    wanted = np.any(y > 0.0, axis=1) if y.size else np.zeros(len(om.object_id), dtype=bool)
+    sent_ids = {int(k) for k in sent}
+    skipped = wanted & np.array([k not in sent_ids for k in np.asarray(om.object_id).tolist()], dtype=bool)
+    m = own.starvation() + 1
+    return {int(k): int(c) for k, c in zip(np.asarray(om.object_id)[skipped].tolist(), m[skipped].tolist())}
+
+
+@given(data=st.data(), n=st.integers(0, 8), m=st.integers(0, 4))
+def test_unscheduled_after_is_the_numpy_one(data, n, m):
+    """Against the version it replaced: shares that multiply to 0 (underflow, NaN, 1 - v
+    = 0), counts right, negative, missing or of another dtype, ids repeated."""
+    shares = st.sampled_from([0.0, 1.0, 0.5, 1e-30, float("nan"), 2.0, -1.0])
+    vis = np.array(data.draw(st.lists(shares, min_size=n * m, max_size=n * m)), np.float32).reshape(n, m)
+    rel = np.array(data.draw(st.lists(shares, min_size=n * m, max_size=n * m)), np.float32).reshape(n, m)
+    ids = np.array(data.draw(st.lists(st.integers(0, 9), min_size=n, max_size=n)), np.int64)
+    om = ObjectMap(ids, np.full(n, 10, np.int64), np.zeros((n, 2), np.float32), np.arange(m, dtype=np.int64), vis, rel)
+    counts = np.array(data.draw(st.lists(st.integers(-2, 5), min_size=n, max_size=n)), np.int64)
+    kind = data.draw(st.sampled_from(["right", "empty", "int32"]))
+    unscheduled = {"right": counts, "empty": counts[:0], "int32": counts.astype(np.int32)}[kind]
+    own = ControlMsg(3, 0.3, 1, Pose(0.0, 0.0, 0.0), 0.0, np.zeros((0, 3), np.float32), om, np.zeros(0, np.int64),
+                     unscheduled)
+    sent = data.draw(st.lists(st.integers(0, 9), max_size=4))
+    assert unscheduled_after(own, sent) == unscheduled_after_reference(own, sent)
+
+
+@given(seed=st.integers(0, 2**64 - 1))
+def test_a_heard_messages_whole_message_is_decodes(seed):
+    """``HeardControl.message`` (the fields ``read`` took, the rest read now) against
+    ``decode``: the same message, or the same error text, on valid and fuzzed control
+    messages that ``read`` accepts."""
+    import random
+
+    from bench import fuzz
+    from protocol.codec import decode
+
+    rnd = random.Random(seed)
+    raw = fuzz.valid_payload("ControlMsg", rnd) if seed % 3 == 0 else fuzz.fuzz_input("ControlMsg", rnd)
+    try:
+        heard = HeardControl.read(raw)
+    except MalformedMessage:
+        return
+    outcomes = []
+    for whole in (heard.message, lambda: decode(raw, ControlMsg)):
+        try:
+            outcomes.append(("ok", encode(whole())))
+        except MalformedMessage as err:
+            outcomes.append(("malformed", str(err)))
+    assert outcomes[0] == outcomes[1]

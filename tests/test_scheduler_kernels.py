@@ -111,11 +111,11 @@ def group_offers(draw):
     return offers, extra, draw(st.integers(0, 3))
 
 
-@given(group_offers())
-def test_make_instance_builds_the_instance_the_numpy_blocks_built(case):
+@given(group_offers(), st.booleans())
+def test_make_instance_builds_the_instance_the_numpy_blocks_built(case, as_array):
     offers, extra, seed = case
     links = Links(seed)
-    kw = dict(vids=extra, decision_interval_s=0.04)
+    kw = dict(vids=np.array(extra, dtype=np.int64) if as_array else extra, decision_interval_s=0.04)
     assert_same_instance(_outcome(lambda: make_instance(offers, links, **kw)),
                          _outcome(lambda: make_instance_reference(offers, links, **kw)))
 
@@ -189,3 +189,20 @@ def test_fill_order_by_hand():
     inst = make_instance(offers, Links(0))
     assert fill_order(inst, (2, 5)).tolist() == [1, 2, 0]  # (2, 6), (3, 1), then (2, 5)
     assert fill_order(inst).tolist() == [0, 1, 2]
+
+
+@given(st.lists(st.integers(0, 70) | st.sampled_from([-3, 65_535, 65_536, 2**40]), max_size=60))
+def test_vehicle_ids_once_each_ascending_are_np_unique(ids):
+    from vehicle_agent.scheduler.instance import _ascending_once
+
+    arr = np.array(ids, dtype=np.int64)
+    got, want = _ascending_once(arr), np.unique(arr)
+    assert got.dtype == want.dtype and got.tolist() == want.tolist()
+
+
+def test_vehicle_ids_once_each_by_hand():
+    from vehicle_agent.scheduler.instance import _ascending_once
+
+    assert _ascending_once(np.array([7, 3, 7, 0, 3], dtype=np.int64)).tolist() == [0, 3, 7]
+    assert _ascending_once(np.zeros(0, dtype=np.int64)).tolist() == []
+    assert _ascending_once(np.array([1 << 20, 2, 2], dtype=np.int64)).tolist() == [2, 1 << 20]

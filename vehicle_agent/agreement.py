@@ -68,7 +68,7 @@ from numba import njit
 from channel_proxy.loss import PrrModel, keyed_uniform_1d, link_probabilities
 from protocol.codec import MalformedMessage, decode, decode_fields, fields_decoder, slots_constructor
 from protocol.messages import ControlMsg, Pose
-from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_plan
+from vehicle_agent.scheduler import Instance, Schedule, SchedulerState, SenderOffers, get, make_instance, tdma_rows
 
 RULES = ("grouped", "heard")
 GROUPING_SALT = 0x61677265  # keys the grouping hash apart from the channel's loss draws
@@ -419,7 +419,7 @@ def group_schedule(decision: Decision, config: AgreementConfig) -> tuple[Instanc
     identical on every vehicle whose ``decision.transmits``."""
     offers = {v: offers_of(m) for v, m in decision.messages.items()}
     instance = make_instance(
-        offers, agreed_p(decision, config), vids=decision.members.tolist() + list(decision.messages),
+        offers, agreed_p(decision, config), vids=decision.members,  # and the senders, which make_instance adds
         bandwidth_bps=config.bandwidth_bps, frame_duration_s=config.frame_duration_s,
         decision_interval_s=len(decision.frames) * config.frame_duration_s,
     )
@@ -433,12 +433,13 @@ def plan(decision: Decision, config: AgreementConfig) -> tuple[PlannedTx, ...]:
     if not decision.transmits:
         return ()
     instance, _, schedule = group_schedule(decision, config)
-    layout = tdma_plan(instance, schedule)
+    frame_s = instance.frame_bytes * 8.0 / instance.bandwidth_bps  # tdma_plan's frame_duration_s
     out = []
-    for t in layout.sent_by(decision.vid):
-        frame = decision.frames[t.frame]
-        offset = t.start_s - t.frame * layout.frame_duration_s
-        out.append(_new_planned(t.object_id, frame * config.frame_duration_s + offset, t.size_bytes, frame))
+    for n, vid, object_id, _, start_s, _, size_bytes in tdma_rows(instance, schedule):  # tdma_plan's, as tuples
+        if vid == decision.vid:
+            frame = decision.frames[n]
+            offset = start_s - n * frame_s
+            out.append(_new_planned(object_id, frame * config.frame_duration_s + offset, size_bytes, frame))
     return tuple(out)
 
 

@@ -30,7 +30,7 @@ from vehicle_agent.scheduler.knapsack import InstanceTooLarge, knapsack_exact, k
 from vehicle_agent.scheduler.optimal import MdpSolution, mdp_optimal, optimal_open_loop
 from vehicle_agent.scheduler.registry import SchedulerFn, UnknownSchedulerError, get, names, register
 from vehicle_agent.scheduler.state import SchedulerState
-from vehicle_agent.scheduler.tdma import Slot, TdmaPlan, Transmission, tdma_plan
+from vehicle_agent.scheduler.tdma import Slot, TdmaPlan, Transmission, tdma_plan, tdma_rows
 
 __all__ = [
     "Instance",
@@ -64,6 +64,7 @@ __all__ = [
     "optimal_open_loop",
     "register",
     "tdma_plan",
+    "tdma_rows",
     "weight_H",
     "work_conserving",
 ]

@@ -320,16 +320,20 @@ def make_instance(
     receivers that already have it. S_f = B * T_n / 8 bytes and N = floor(T_d / T_n).
     """
     senders = [(int(i), _as_arrays(objs)) for i, objs in offers.items()]
+    if not history:
+        # the senders' tables as they come in control messages: one kernel, which adds the senders and
+        # receivers to an int64 array of vids itself (a set of a group's 40 receivers was 9 us)
+        given = type(vids) is np.ndarray and vids.dtype == np.int64 and vids.ndim == 1
+        tables = _offer_tables(senders, vids if given else np.array(sorted({int(v) for v in vids}), dtype=np.int64))
+        if tables is not None:
+            vid_arr, *arrays = tables
+            return _canonical(vid_arr, *arrays, _p_table(p_deliver, vid_arr), bandwidth_bps, frame_duration_s,
+                              decision_interval_s)
     all_vids = {int(v) for v in vids} | {i for i, _ in senders}
     for _, b in senders:
         all_vids.update(np.asarray(b.receivers).tolist())
     vid_arr = np.array(sorted(all_vids), dtype=np.int64)
     C = len(vid_arr)
-    if not history:
-        tables = _offer_tables(senders, vid_arr)
-        if tables is not None:  # the senders' tables as they come in control messages: one kernel
-            return _canonical(vid_arr, *tables, _p_table(p_deliver, vid_arr), bandwidth_bps, frame_duration_s,
-                              decision_interval_s)
     blocks, unseen = [], []
     for i, b in senders:
         y = np.zeros((len(b.object_id), C))
@@ -378,50 +382,63 @@ def make_instance(
     )
 
 
-def _offer_tables(senders: list[tuple[int, SenderOffers]], vid_arr: np.ndarray) -> tuple | None:
-    """``make_instance``'s objects from arrays of senders given ascending, each sender's
-    objects ascending by id (how a group's control messages give them): owner, object
-    id, size, reward and unseen, as ``make_instance``'s per-sender numpy blocks and
+def _offer_tables(senders: list[tuple[int, SenderOffers]], vids: np.ndarray) -> tuple | None:
+    """``make_instance``'s vehicles and objects from arrays of senders given ascending,
+    each sender's objects ascending by id (how a group's control messages give them):
+    the vids (those of ``vids``, the senders and their receivers, ascending), owner,
+    object id, size, reward and unseen, as ``make_instance``'s per-sender numpy blocks and
     ``instance_from_arrays`` compute them, in one kernel over the concatenated tables
     (~15 numpy calls per sender were most of the schedule stage). None for anything
     else (no sender, tables not (n, m) numeric arrays, senders or objects out of
     order): the general path takes it."""
     if not senders:
         return None
-    vis, rel, n_objects, n_receivers = [], [], [], []
-    for _, b in senders:
-        v, r = b.visibility, b.relevance
-        n, m = len(b.object_id), len(b.receivers)
-        if type(v) is not np.ndarray or type(r) is not np.ndarray or v.shape != (n, m) or r.shape != (n, m):
+    meta = [[], [], []]  # each sender's vid, number of objects and of receivers
+    ndarray = np.ndarray
+    for i, b in senders:
+        ids, sizes, receivers, v, r = b.object_id, b.size_bytes, b.receivers, b.visibility, b.relevance
+        if type(ids) is not ndarray or type(sizes) is not ndarray or type(receivers) is not ndarray or \
+                type(v) is not ndarray or type(r) is not ndarray or ids.ndim != 1 or sizes.ndim != 1 or \
+                receivers.ndim != 1:
             return None
-        vis.append(v.ravel())
-        rel.append(r.ravel())
-        n_objects.append(n)
-        n_receivers.append(m)
-    visibility, relevance = np.concatenate(vis), np.concatenate(rel)
-    if visibility.dtype.kind != "f" or relevance.dtype.kind != "f" or visibility.dtype != relevance.dtype:
+        n, m = len(ids), len(receivers)
+        if v.shape != (n, m) or r.shape != (n, m):
+            return None
+        meta[0].append(i)
+        meta[1].append(n)
+        meta[2].append(m)
+    # two concatenations, not one per field: the ids, sizes and receivers; then every table, flattened
+    ints = np.concatenate([b.object_id for _, b in senders] + [b.size_bytes for _, b in senders] +
+                          [b.receivers for _, b in senders])
+    shares = np.concatenate([b.visibility.ravel() for _, b in senders] + [b.relevance.ravel() for _, b in senders])
+    if ints.dtype != np.int64 or shares.dtype.kind != "f":  # values as np.asarray(..., np.float64) gives them
         return None
-    object_id = np.concatenate([b.object_id for _, b in senders]).astype(np.int64, copy=False)
-    size_bytes = np.concatenate([b.size_bytes for _, b in senders]).astype(np.int64, copy=False)
-    receivers = np.concatenate([b.receivers for _, b in senders]).astype(np.int64, copy=False)
-    sender = np.array([i for i, _ in senders], dtype=np.int64)
-    counts = np.array([n_objects, n_receivers], dtype=np.int64)
-    owner, reward, hidden, canonical = _offer_kernel(vid_arr, sender, counts, object_id, receivers, visibility,
-                                                     relevance)
+    vid_arr, owner, reward, hidden, canonical = _offer_kernel(vids, np.array(meta, dtype=np.int64), ints, shares)
     if not canonical:
         return None
-    return owner, object_id, size_bytes, reward, hidden.sum(axis=1)  # summed in vid order, row by row
+    K = len(owner)
+    object_id, size_bytes = ints[:K], ints[K:2 * K]
+    return vid_arr, owner, object_id, size_bytes, reward, hidden.sum(axis=1)  # summed in vid order, row by row
 
 
 @njit(cache=True)
-def _offer_kernel(vids, sender, counts, object_id, receivers, visibility, relevance):
-    """(owner, reward, hidden, canonical): per object, the index of its sender in
+def _offer_kernel(extra, meta, ints, shares):
+    """(vids, owner, reward, hidden, canonical) of the senders ``meta[0]`` with
+    ``meta[1]`` objects and ``meta[2]`` receivers each, whose object ids, sizes and
+    receivers are ``ints`` (all ids, all sizes, all receivers) and whose tables are
+    ``shares`` (all visibilities, all relevances): the vehicles (``extra``, the senders
+    and the receivers, ascending, once each); per object, the index of its sender in
     ``vids``; y = (1 - v) * r in the receivers' columns, 0 in the sender's own;
     min(max(1 - v, 0), 1) likewise (``unseen`` is its row sums); and whether the
     objects are in canonical order (senders strictly ascending, object ids ascending
     within a sender). Tables are (n, m) row-major, sender after sender; a receiver
     named twice keeps its last column, as numpy's ``y[:, cols] = ...`` does."""
-    C, K = vids.shape[0], object_id.shape[0]
+    sender, counts = meta[0], meta[1:]
+    K, T = counts[0].sum(), (counts[0] * counts[1]).sum()
+    object_id, receivers = ints[:K], ints[2 * K:]
+    visibility, relevance = shares[:T], shares[T:]
+    vids = _ascending_once(np.concatenate((extra, sender, receivers)))
+    C = vids.shape[0]
     owner = np.empty(K, dtype=np.int64)
     reward = np.zeros((K, C))
     hidden = np.zeros((K, C))
@@ -453,7 +470,28 @@ def _offer_kernel(vids, sender, counts, object_id, receivers, visibility, releva
         row += n
         at_r += m
         at_t += n * m
-    return owner, reward, hidden, canonical
+    return vids, owner, reward, hidden, canonical
+
+
+@njit(cache=True)
+def _ascending_once(ids):
+    """``np.unique(ids)``: ids ascending, once each; vehicle ids (small, non-negative)
+    marked in a table rather than sorted."""
+    if ids.shape[0] == 0 or ids.min() < 0 or ids.max() >= 1 << 16:
+        return np.unique(ids)
+    seen = np.zeros(ids.max() + 1, dtype=np.bool_)
+    n = 0
+    for v in ids:
+        if not seen[v]:
+            seen[v] = True
+            n += 1
+    out = np.empty(n, dtype=np.int64)
+    n = 0
+    for v in range(seen.shape[0]):
+        if seen[v]:
+            out[n] = v
+            n += 1
+    return out
 
 
 def _p_table(p_deliver, vid_arr: np.ndarray) -> np.ndarray:

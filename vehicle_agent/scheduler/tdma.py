@@ -60,6 +60,14 @@ class TdmaPlan:
 
 def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
     """Lay the schedule out in time (frame duration T_n = S_f * 8 / B)."""
+    rows = tdma_rows(instance, schedule)
+    return TdmaPlan(tuple(_new_transmission(*row) for row in rows), instance.frame_bytes * 8.0 / instance.bandwidth_bps)
+
+
+def tdma_rows(instance: Instance, schedule: Schedule) -> list[tuple[int, int, int, int, float, float, int]]:
+    """``tdma_plan``'s transmissions as tuples of their fields (frame, vid, object_id,
+    index, start_s, duration_s, size_bytes), in time order: for a caller that keeps a
+    few of them (a vehicle its own, ``agreement.plan``) without a record for each."""
     frame_s = instance.frame_bytes * 8.0 / instance.bandwidth_bps
     scheduled = sorted(schedule.sent())
     total_reward = dict(zip(scheduled, instance.reward[scheduled].sum(axis=1).tolist()))  # sum_j y_(i,k),j
@@ -68,7 +76,7 @@ def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
     oids = instance.object_id.tolist()
     sizes = instance.size_bytes.tolist()
     bandwidth_bps = instance.bandwidth_bps
-    out: list[Transmission] = []
+    out: list[tuple[int, int, int, int, float, float, int]] = []
     for n, frame in enumerate(schedule.frames):
         spare = set(schedule.filled(n))
         t = n * frame_s
@@ -80,9 +88,9 @@ def tdma_plan(instance: Instance, schedule: Schedule) -> TdmaPlan:
             for i in senders:
                 for k in sorted(by_sender[i], key=lambda k: (-total_reward[k], oids[k])):
                     duration = sizes[k] * 8.0 / bandwidth_bps
-                    out.append(_new_transmission(n, vids[i], oids[k], k, t, duration, sizes[k]))
+                    out.append((n, vids[i], oids[k], k, t, duration, sizes[k]))
                     t += duration
-    return TdmaPlan(tuple(out), frame_s)
+    return out
 
 
 _new_transmission = slots_constructor(Transmission)  # Transmission(...) without the frozen __init__'s setattr calls

@@ -567,3 +567,16 @@ def test_an_array_field_is_written_or_refused_as_the_checked_path_does(field, va
         got = ("refused", str(exc))
     assert got == want
     assert (got[0] == "ok") == (accepted or isinstance(value, np.ma.MaskedArray))
+
+
+def test_a_list_of_plain_items_is_taken_at_once_or_item_by_item():
+    """``list[bytes]`` (a control bundle's messages): a list of bytes as it is (a new
+    list); any other item still goes to the item's converter, its index in the path."""
+    convert = codec._converter(list[bytes])
+    items = [b"a", b"", b"c"]
+    got = convert(items)
+    assert got == items and got is not items
+    with pytest.raises(codec._FieldError) as err:
+        convert([b"a", "b"])
+    assert err.value.path == ["[1]"] and err.value.text == "expected bytes, got str"
+    assert codec._converter(tuple[str, ...])(["x", "y"]) == ("x", "y")

@@ -206,3 +206,40 @@ def test_vehicle_ids_once_each_by_hand():
     assert _ascending_once(np.array([7, 3, 7, 0, 3], dtype=np.int64)).tolist() == [0, 3, 7]
     assert _ascending_once(np.zeros(0, dtype=np.int64)).tolist() == []
     assert _ascending_once(np.array([1 << 20, 2, 2], dtype=np.int64)).tolist() == [2, 1 << 20]
+
+
+@given(group_offers(), st.none() | st.tuples(st.integers(-1, 62), st.integers(-(1 << 62), 1001)), st.data(),
+       st.sampled_from([(7.2e6, 0.01, 0.1), (8000.0, 0.1, 0.3), (400_000.0, 0.01, 0.05)]))
+def test_autocast_is_work_conserving_greedy(case, cursor, data, link):
+    """The fused kernel against what it fuses, ``work_conserving(greedy(...))``: the
+    same frames and fill, for any starvation counts and cursor, roomy or tight frames."""
+    from vehicle_agent.scheduler import SchedulerState, Schedule
+    from vehicle_agent.scheduler.fill import work_conserving
+    from vehicle_agent.scheduler.greedy import autocast, greedy
+
+    offers, extra, seed = case
+    bandwidth_bps, frame_duration_s, decision_interval_s = link
+    try:
+        inst = make_instance(offers, Links(seed), vids=extra, bandwidth_bps=bandwidth_bps,
+                             frame_duration_s=frame_duration_s, decision_interval_s=decision_interval_s)
+    except ValueError:
+        return  # NaN or out-of-range shares: no instance
+    keys = inst.keys()
+    starved = sorted(set(data.draw(st.lists(st.sampled_from(keys), max_size=5)))) if keys else []
+    counts = data.draw(st.lists(st.integers(1, 6), min_size=len(starved), max_size=len(starved)))
+    state = SchedulerState(np.array(starved, dtype=np.int64).reshape(-1, 2), np.array(counts, dtype=np.int64), cursor)
+    got, want = autocast(inst, state), work_conserving(inst, greedy(inst, state), cursor)
+    assert isinstance(got, Schedule) and got == want
+
+
+def test_autocast_by_hand():
+    """One 100-byte frame: X (60 B, reward 0.6 -> 0.01/B) goes first, Y (50 B, 0.4) no
+    longer fits; the spare 40 B carry Z (30 B, no reward but unseen by one vehicle)."""
+    from vehicle_agent.scheduler import SchedulerState
+    from vehicle_agent.scheduler.greedy import autocast
+
+    offers = {1: SenderOffers(np.array([1, 2, 3]), np.array([60, 50, 30]), np.array([2]),
+                              np.zeros((3, 1), np.float32), np.array([[0.6], [0.4], [0.0]], np.float32))}
+    inst = make_instance(offers, Links(0), bandwidth_bps=8000.0, frame_duration_s=0.1, decision_interval_s=0.1)
+    schedule = autocast(inst, SchedulerState())
+    assert schedule.frames == ((0, 2),) and schedule.fill == ((2,),)

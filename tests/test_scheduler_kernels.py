@@ -243,3 +243,12 @@ def test_autocast_by_hand():
     inst = make_instance(offers, Links(0), bandwidth_bps=8000.0, frame_duration_s=0.1, decision_interval_s=0.1)
     schedule = autocast(inst, SchedulerState())
     assert schedule.frames == ((0, 2),) and schedule.fill == ((2,),)
+
+
+def test_vids_given_once_as_an_iterator_reach_the_general_path_too():
+    """Objects out of order take the general path after the kernel declined them: an
+    iterator of vids is read once, yet both see all of it."""
+    offers = {4: SenderOffers(np.array([9, 3]), np.array([1, 2]), np.array([1]), np.zeros((2, 1), np.float32),
+                              np.ones((2, 1), np.float32))}
+    inst = make_instance(offers, Links(0), vids=iter([7, 8]))
+    assert inst.vids.tolist() == [1, 4, 7, 8]

@@ -79,5 +79,4 @@ def work_conserving(instance: Instance, primary: Schedule, cursor: ObjectKey | N
     for k, n in enumerate(at.tolist()):
         if n >= 0:
             fill[n].append(k)
-    return Schedule(tuple(tuple(sorted(f + g)) for f, g in zip(frames, fill)),
-                    tuple(tuple(g) for g in fill))
+    return Schedule(tuple(tuple(sorted(f + g)) for f, g in zip(frames, fill)), tuple(tuple(g) for g in fill))

@@ -320,6 +320,8 @@ def make_instance(
     receivers that already have it. S_f = B * T_n / 8 bytes and N = floor(T_d / T_n).
     """
     senders = [(int(i), _as_arrays(objs)) for i, objs in offers.items()]
+    if type(vids) is not np.ndarray:
+        vids = list(vids)  # read twice if the general path takes the instance after all
     if not history:
         # the senders' tables as they come in control messages: one kernel, which adds the senders and
         # receivers to an int64 array of vids itself (a set of a group's 40 receivers was 9 us)

@@ -12,8 +12,10 @@ from hypothesis import strategies as st
 from protocol.messages import LidarConfig, Pose
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.perception import DetectedObject, DrivableRaster, GridSpec, build_grid, extract_objects
-from vehicle_agent.tracking import (ACCEL_SIGMA_MPS2, GATE_CHI2, GATE_MAX_M, GATE_MIN_M, INIT_SPEED_SIGMA_MPS,
-                                   MEAS_SIGMA_M, Tracker, _persisting, associate)
+from vehicle_agent.tracking import (_OFFSETS, ACCEL_SIGMA_MPS2, EVIDENCE_LAG_MIN, EVIDENCE_MARGIN,
+                                   EVIDENCE_MIN_POINTS, EVIDENCE_MIN_SHARE, EVIDENCE_SHIFT_M, GATE_CHI2, GATE_MAX_M,
+                                   GATE_MIN_M, INIT_SPEED_SIGMA_MPS, MEAS_SIGMA_M, REGISTERED_POINTS, VOXEL_M, Tracker,
+                                   _persisting, associate, registered_velocity)
 from world_server import lidar
 
 DT = 0.1
@@ -191,3 +193,75 @@ def test_associate_matches_the_numpy_formulation(seed, n_t, n_d, lattice):
         measured = rng.uniform(0, 10, (n_d, 2))
         variance = rng.uniform(0.0, 3.0, n_t)
     assert associate(predicted, variance, measured) == _associate_numpy(predicted, variance, measured)
+
+
+def _registered_velocity_numpy(history, now, t_sim_s, velocity):
+    """The reference: ``registered_velocity`` as it was written, its shifts and choice in numpy."""
+    speed = float(np.hypot(*velocity))
+    for back in range(EVIDENCE_LAG_MIN, len(history) + 1):
+        t_old, old = history[-back]
+        age = t_sim_s - t_old
+        if speed * age < EVIDENCE_SHIFT_M:
+            continue
+        if len(old) < EVIDENCE_MIN_POINTS:
+            return None
+        now = np.ascontiguousarray(now)
+        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)])
+        shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])
+        shares = _persisting(old, now, shifts, VOXEL_M)
+        best = int(np.argmax(shares[1:])) + 1
+        if shares[best] >= EVIDENCE_MIN_SHARE and shares[best] - shares[0] >= EVIDENCE_MARGIN:
+            return shifts[best] / age
+        return None
+    return None
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), frames=st.integers(1, 6), n=st.sampled_from([10, 40, 300, 1000]),
+       lattice=st.booleans())
+def test_registered_velocity_matches_the_numpy_formulation(seed, frames, n, lattice):
+    """A block of float32 points that moves (or not, or jumps) frame to frame, the
+    filter's velocity near or far from the truth: the same velocity, bit for bit, or None
+    alike. On a 0.1 m lattice, points fall on voxel edges and shares tie."""
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(-12.0, 12.0, 2) * rng.choice([0.0, 1.0])
+    block = rng.uniform([0.0, 0.0, 0.0], rng.uniform(0.5, 5.0, 3), (n, 3))
+    if lattice:
+        block = np.round(block * 10.0) / 10.0
+    history = []
+    for k in range(frames):
+        pts = block + np.append(truth * DT * k, 0.0) + rng.normal(0.0, 0.02, block.shape) * rng.choice([0.0, 1.0])
+        history.append((DT * k, pts[rng.random(n) < 0.9].astype(np.float32)))
+    now = (block + np.append(truth * DT * frames, 0.0)).astype(np.float32)
+    velocity = truth + rng.normal(0.0, 2.0, 2) * rng.choice([0.0, 1.0])
+    got = registered_velocity(history, now, DT * frames, velocity)
+    want = _registered_velocity_numpy(history, now, DT * frames, velocity)
+    assert (got is None) == (want is None)
+    if got is not None:
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+
+
+def test_a_block_moved_1_m_in_0_1_s_registers_at_the_first_shift_that_keeps_it_all():
+    """A 0.6 m block of points (off the voxel edges) moved 1 m along x in 0.1 s, the filter
+    at 10 m/s: unmoved, none of its points persist; every moved hypothesis within one
+    voxel of the truth keeps them all, and the first of those in the offsets' order,
+    (-0.2, -0.2) m, wins: 8 m/s along x, -2 across."""
+    g = np.arange(6) * 0.1 + 0.05
+    block = np.stack(np.meshgrid(g, g, [0.55], indexing="ij"), axis=-1).reshape(-1, 3)
+    old, now = block.astype(np.float32), (block + [1.0, 0.0, 0.0]).astype(np.float32)
+    got = registered_velocity([(0.0, old), (0.05, old), (0.1, now)], now, 0.1, np.array([10.0, 0.0]))
+    assert got == pytest.approx([8.0, -2.0])
+    # a block that stays put is explained as well unmoved: no velocity
+    assert registered_velocity([(0.0, old), (0.05, old), (0.1, old)], old, 0.1, np.array([10.0, 0.0])) is None
+
+
+def test_the_filter_state_is_the_covariance_and_velocity_the_arrays_gave():
+    """A new track's state: its centroid, no velocity, the initial covariance; after a
+    second frame the filtered velocity is the one the state holds."""
+    tracker = Tracker()
+    (tr,) = tracker.update([_det(20.0, 3.0)], 0.0)
+    assert tr.cov.tolist() == np.diag([MEAS_SIGMA_M**2, INIT_SPEED_SIGMA_MPS**2]).tolist()
+    assert tr.filtered_velocity.tolist() == [0.0, 0.0] and tr.xy.tolist() == [20.0, 3.0]
+    (tr,) = tracker.update([_det(21.0, 3.0)], DT)
+    assert tr.filtered_velocity.tolist() == list(tr.kf[2:4]) and tr.xy.tolist() == list(tr.kf[:2])
+    assert tr.cov.tolist() == [list(tr.kf[4:6]), list(tr.kf[6:8])]

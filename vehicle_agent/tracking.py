@@ -62,10 +62,28 @@ class Track:
     detection: DetectedObject
     hits: int = 1
     missed: int = 0
-    filtered_velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    cov: np.ndarray = field(default_factory=lambda: np.diag([MEAS_SIGMA_M**2, INIT_SPEED_SIGMA_MPS**2]))
     moving: bool = False
     points_history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))  # (t, points) when matched
+    # the filter's state as Python floats: x, y, vx, vy, P00, P01, P10, P11 (None: ``xy`` as
+    # first measured, the velocity unknown); the filter reads and writes no array per tick
+    kf: tuple[float, float, float, float, float, float, float, float] | None = None
+
+    @property
+    def filter_state(self) -> tuple[float, float, float, float, float, float, float, float]:
+        if self.kf is None:
+            x, y = self.xy.tolist()
+            return x, y, 0.0, 0.0, MEAS_SIGMA_M**2, 0.0, 0.0, INIT_SPEED_SIGMA_MPS**2
+        return self.kf
+
+    @property
+    def filtered_velocity(self) -> np.ndarray:
+        return np.array(self.filter_state[2:4])
+
+    @property
+    def cov(self) -> np.ndarray:
+        """The per-axis covariance of [position, velocity]."""
+        p = self.filter_state
+        return np.array([[p[4], p[5]], [p[6], p[7]]])
 
     @property
     def speed_mps(self) -> float:
@@ -87,17 +105,12 @@ class Track:
 
 
 def _predicted(tr: Track, t_sim_s: float) -> list[float]:
-    """``tr.predict(t_sim_s)`` on Python floats (the same sums)."""
+    """``tr.predict(t_sim_s)`` and ``tr.innovation_var(t_sim_s)`` on Python floats (the
+    same sums)."""
     dt = t_sim_s - tr.t_sim_s
-    (x, y), (vx, vy) = tr.xy.tolist(), tr.filtered_velocity.tolist()
-    return [x + vx * dt, y + vy * dt]
-
-
-def _innovation_var(cov: list[list[float]], dt: float) -> float:
-    """``Track.innovation_var`` from the covariance as nested lists (the same sums)."""
+    x, y, vx, vy, p00, p01, _, p11 = tr.filter_state
     q = ACCEL_SIGMA_MPS2**2
-    p00, p01, p11 = cov[0][0], cov[0][1], cov[1][1]
-    return p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4 + MEAS_SIGMA_M**2
+    return [x + vx * dt, y + vy * dt, p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4 + MEAS_SIGMA_M**2]
 
 
 def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
@@ -109,8 +122,13 @@ def _predict_cov(cov: np.ndarray, dt: float) -> np.ndarray:
 def _predicted_cov(cov: np.ndarray, dt: float) -> tuple[float, float, float]:
     """``_predict_cov``'s P'[0, 0], P'[0, 1] (= P'[1, 0]) and P'[1, 1] as Python floats
     (written out: the 2x2 products cost more in numpy calls than in arithmetic)."""
-    q = ACCEL_SIGMA_MPS2**2
     (p00, p01), (_, p11) = cov.tolist()
+    return _predicted_terms(p00, p01, p11, dt)
+
+
+def _predicted_terms(p00: float, p01: float, p11: float, dt: float) -> tuple[float, float, float]:
+    """``_predicted_cov`` of the covariance's terms."""
+    q = ACCEL_SIGMA_MPS2**2
     return p00 + 2 * dt * p01 + dt * dt * p11 + q * dt**4 / 4, p01 + dt * p11 + q * dt**3 / 2, p11 + q * dt * dt
 
 
@@ -123,9 +141,8 @@ class Tracker:
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
         """Associate this tick's detections; returns the tracks seen this tick, by id."""
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
-        predicted = np.array([_predicted(tr, t_sim_s) for tr in self.tracks]).reshape(-1, 2)
-        variance = np.array([_innovation_var(tr.cov.tolist(), t_sim_s - tr.t_sim_s) for tr in self.tracks])
-        pairs = associate(predicted, variance, centroids)
+        predicted = np.array([_predicted(tr, t_sim_s) for tr in self.tracks]).reshape(-1, 3)  # and the variance
+        pairs = associate(predicted[:, :2], predicted[:, 2], centroids)
         matched_tracks, matched_dets = set(), set()
         for ti, di in pairs:
             self._correct(self.tracks[ti], detections[di], t_sim_s)
@@ -138,6 +155,7 @@ class Tracker:
         for di, det in enumerate(detections):
             if di not in matched_dets:
                 tr = Track(self._next_id, det.centroid[:2].copy(), np.zeros(2), t_sim_s, det)
+                tr.kf = tr.filter_state
                 tr.points_history.append((t_sim_s, det.points_world))
                 self.tracks.append(tr)
                 self._next_id += 1
@@ -150,8 +168,8 @@ class Tracker:
         2 x 2 numpy statements of the filter compute them (K = P H^T S^-1, (I - K H) P):
         the same values, without a numpy call per element (~20 per track and tick)."""
         dt = max(t_sim_s - tr.t_sim_s, 1e-3)
-        a, b, c = _predicted_cov(tr.cov, dt)
-        (x, y), (vx, vy) = tr.xy.tolist(), tr.filtered_velocity.tolist()
+        x, y, vx, vy, p00, p01, _, p11 = tr.filter_state
+        a, b, c = _predicted_terms(p00, p01, p11, dt)
         px, py = x + vx * dt, y + vy * dt  # predicted centroid
         cx, cy = det.centroid.tolist()[:2]
         rx, ry = cx - px, cy - py  # residual
@@ -162,20 +180,19 @@ class Tracker:
         p00, p01, p10, p11 = a - g0 * a, b - g0 * b, b - g1 * a, c - g1 * b  # P - outer(gain, P[0, :])
         registered, speed = None, np.hypot(vx, vy)
         if speed >= STILL_MPS:
-            registered = registered_velocity(tr.points_history, det.points_world, t_sim_s, np.array([vx, vy]))
+            registered = _registered(tr.points_history, det.points_world, t_sim_s, vx, vy, float(speed))
         if registered is not None:  # a velocity measurement too: H = [0, 1] per axis
             s_v = p11 + REGISTERED_SIGMA_MPS**2
             g0, g1 = p01 / s_v, p11 / s_v  # gain = P[:, 1] / S
-            rx, ry = registered.tolist()
+            rx, ry = registered
             rx, ry = rx - vx, ry - vy
             x, y = x + g0 * rx, y + g0 * ry
             vx, vy = vx + g1 * rx, vy + g1 * ry
             # P - outer(gain, P[1, :])
             p00, p01, p10, p11 = p00 - g0 * p10, p01 - g0 * p11, p10 - g1 * p10, p11 - g1 * p11
             speed = np.hypot(vx, vy)
+        tr.kf = (x, y, vx, vy, p00, p01, p10, p11)
         tr.xy = np.array([x, y])
-        tr.filtered_velocity = np.array([vx, vy])
-        tr.cov = np.array([[p00, p01], [p10, p11]])
         tr.moving = speed >= STILL_MPS and (tr.moving or registered is not None)
         tr.velocity = np.array([vx, vy]) if tr.moving else np.zeros(2)
         tr.t_sim_s = t_sim_s
@@ -197,7 +214,14 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
     points) per past match, oldest first; the lag is the shortest of at least
     EVIDENCE_LAG_MIN matches over which the filter's shift reaches EVIDENCE_SHIFT_M.
     """
-    speed = float(np.hypot(*velocity))
+    vx, vy = np.asarray(velocity, dtype=np.float64).tolist()
+    registered = _registered(history, now, t_sim_s, vx, vy, float(np.hypot(*velocity)))
+    return None if registered is None else np.array(registered)
+
+
+def _registered(history, now: np.ndarray, t_sim_s: float, vx: float, vy: float,
+                speed: float) -> tuple[float, float] | None:
+    """``registered_velocity`` of the velocity (vx, vy), its norm ``speed``, as Python floats."""
     for back in range(EVIDENCE_LAG_MIN, len(history) + 1):
         t_old, old = history[-back]
         age = t_sim_s - t_old
@@ -206,14 +230,31 @@ def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.n
         if len(old) < EVIDENCE_MIN_POINTS:  # too sparse (far away) to tell a change of view from a move
             return None
         now = np.ascontiguousarray(now)  # float32 as detected: the kernel widens each coordinate exactly
-        old = np.ascontiguousarray(old[::max(len(old) // REGISTERED_POINTS, 1)])
-        shifts = np.vstack([[0.0, 0.0], velocity * age + _OFFSETS])  # unmoved, then the moved hypotheses
-        shares = _persisting(old, now, shifts, VOXEL_M)
-        best = int(np.argmax(shares[1:])) + 1
-        if shares[best] >= EVIDENCE_MIN_SHARE and shares[best] - shares[0] >= EVIDENCE_MARGIN:
-            return shifts[best] / age
-        return None
+        found, rx, ry = _registration(old, max(len(old) // REGISTERED_POINTS, 1), now, vx, vy,
+                                      age, _OFFSETS, VOXEL_M, EVIDENCE_MIN_SHARE, EVIDENCE_MARGIN)
+        return (rx, ry) if found else None
     return None
+
+
+@njit(cache=True)
+def _registration(old, step, now, vx, vy, age, offsets, voxel, min_share, margin):
+    """``registered_velocity``'s test over the lag ``age``, of every ``step``-th old point:
+    the shifts (unmoved, then (vx, vy) * age plus each of ``offsets``), their shares
+    (``_persisting``), and whether the best moved one wins: (found, the velocity it
+    gives). Replaces half a dozen numpy calls on 26 shifts per mover and tick."""
+    shifts = np.empty((offsets.shape[0] + 1, 2))
+    shifts[0, 0], shifts[0, 1] = 0.0, 0.0
+    sx, sy = vx * age, vy * age
+    for o in range(offsets.shape[0]):
+        shifts[o + 1, 0], shifts[o + 1, 1] = sx + offsets[o, 0], sy + offsets[o, 1]
+    shares = _persisting(np.ascontiguousarray(old[::step]), now, shifts, voxel)
+    best = 1  # the first of the largest moved shares
+    for s in range(2, len(shares)):
+        if shares[s] > shares[best]:
+            best = s
+    if shares[best] >= min_share and shares[best] - shares[0] >= margin:
+        return True, shifts[best, 0] / age, shifts[best, 1] / age
+    return False, 0.0, 0.0
 
 
 @njit(cache=True)

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from vehicle_agent.perception import (ABOVE, EMPTY, DetectedObject, Grid, GridSpec, _cells_by_label, _labels,
-                                      _object_stats, _objects, _rays_by_label)
+from vehicle_agent.perception import (ABOVE, EMPTY, DetectedObject, Grid, GridSpec, _above_cells, _cells_by_label,
+                                      _label_sums, _labels, _object_stats, _objects, _rays_by_label)
 
 
 def reference_objects(pts, pts32, bounds, grid, labels, k, cells):
@@ -97,8 +97,24 @@ def test_objects_equal_the_numpy_boxes_bit_for_bit(seed, n, empty_share):
     if rng.random() < 0.5:
         pts += rng.normal(0.0, 1e-3, pts.shape)
     pts32 = pts.astype(np.float32)
-    _assert_same_objects(_objects(pts, pts32, bounds, grid, labels, k, cells),
-                         reference_objects(pts, pts32, bounds, grid, labels, k, cells))
+    want = reference_objects(pts, pts32, bounds, grid, labels, k, cells)
+    _assert_same_objects(_objects(pts, pts32, bounds, grid, labels, k, cells), want)
+    _assert_same_objects(_objects(pts, pts32, bounds, grid, labels, k, cells, _label_sums(pts, bounds)), want)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.sampled_from([8, 24, 40]))
+def test_labels_from_known_cells_equal_the_whole_grids_on_those_cells(seed, n):
+    """``_labels`` with the ABOVE cells given (as ``scan_grid`` finds them) leaves the
+    other cells' labels unset: on the given cells, the labels and k of the whole grid's."""
+    rng = np.random.default_rng(seed)
+    grid, _ = _labelled_grid(rng, n)
+    np.empty((n, n), dtype=np.int32).fill(-7)  # garbage in memory the labels below may reuse
+    sensor = tuple(((np.array([grid.i0, grid.j0]) + rng.uniform(0, n, 2)) * grid.spec.cell_m).tolist())
+    want, want_k, cells = _labels(grid, sensor)
+    labels, k, same = _labels(grid, sensor, _above_cells(grid.state, grid.drivable))
+    assert k == want_k and np.array_equal(same, cells)
+    assert labels.ravel()[cells].tolist() == want.ravel()[cells].tolist()
 
 
 def test_a_rotated_rectangle_becomes_one_box_and_an_empty_label_none():
@@ -140,8 +156,11 @@ def test_rays_by_label_equals_the_per_ray_count(seed, run):
     flat_labels = rng.integers(0, k + 1, n * n).astype(np.int32)
     args = (range_cm, np.cos(az), np.sin(az), tan_el, float(rng.uniform(-50, 50)), float(rng.uniform(-50, 50)),
             float(rng.uniform(-np.pi, np.pi)), 1.9, rays, flat_labels, k)
-    for got, want in zip(_rays_by_label(*args), reference_rays_by_label(*args)):
-        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    *got, sums = _rays_by_label(*args)
+    want = reference_rays_by_label(*args)
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    assert sums.tobytes() == _label_sums(want[0], want[2]).tobytes()  # added as the points are placed
 
 
 def test_rays_by_label_groups_by_label_in_ray_order():
@@ -150,8 +169,8 @@ def test_rays_by_label_groups_by_label_in_ray_order():
     range_cm = np.array([[1000, 2000, 3000]], dtype=np.uint16)
     rays = np.array([[0, 0, 5], [0, 1, 6], [0, 2, 7]], dtype=np.int32)
     flat_labels = np.array([0, 0, 0, 0, 0, 2, 1, 2], dtype=np.int32)
-    pts, pts32, bounds = _rays_by_label(range_cm, np.ones(1), np.zeros(1), np.zeros(3), 0.0, 0.0, 0.0, 1.9, rays,
-                                        flat_labels, 2)
-    assert bounds.tolist() == [0, 1, 3]
+    pts, pts32, bounds, sums = _rays_by_label(range_cm, np.ones(1), np.zeros(1), np.zeros(3), 0.0, 0.0, 0.0, 1.9,
+                                              rays, flat_labels, 2)
+    assert bounds.tolist() == [0, 1, 3] and sums.tolist() == [[20.0, 0.0, 1.9], [40.0, 0.0, 3.8]]
     assert pts.tolist() == [[20.0, 0.0, 1.9], [10.0, 0.0, 1.9], [30.0, 0.0, 1.9]]
     assert pts32.dtype == np.float32 and pts32.tolist() == pts.astype(np.float32).tolist()

@@ -384,8 +384,8 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     cells (``_above_cells``), found as they turn ABOVE rather than by a scan of the grid."""
     x, y, yaw = pose_xyyaw
     n = spec.cells
-    i0 = int(np.floor(x / spec.cell_m)) - n // 2
-    j0 = int(np.floor(y / spec.cell_m)) - n // 2
+    i0 = math.floor(x / spec.cell_m) - n // 2  # int(np.floor(...)) without numpy's scalar calls
+    j0 = math.floor(y / spec.cell_m) - n // 2
     state = np.zeros(n * n, dtype=np.uint8)
     window = drivable.window(i0, j0, n)
     rays = np.empty((range_cm.size, 3), dtype=np.int32)  # pages past the m rows written are never touched
@@ -393,7 +393,10 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     cos_az, sin_az, tan_el = tables
     m, m_cells = _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, spec.cell_m,
                            exact_inverse(spec.cell_m), n, spec.ground_clear_m, window.ravel(), state, rays, cells)
-    return Grid(spec, i0, j0, state.reshape(n, n), window), (rays[:m], np.sort(cells[:m_cells]))
+    return _new_grid(spec, i0, j0, state.reshape(n, n), window), (rays[:m], np.sort(cells[:m_cells]))
+
+
+_new_grid = slots_constructor(Grid)  # Grid(...) without the frozen __init__'s cost
 
 
 def scan_objects(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.ndarray], pose_xyyaw: tuple,
@@ -452,22 +455,25 @@ def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell
 def _beam_cells(range_row, wx, wy, x, y, i0, j0, cell, inv, n, mount_m, tan_el, clear, cells, above):
     """``_bin_rays``' cells (-1: no return or outside the grid) and above-the-ground
     flags of one azimuth's beams, its horizontal direction (wx, wy). No branch inside a
-    loop, so that the compiler vectorises it: the division's loop is a second copy."""
+    loop, so that the compiler vectorises it: the division's loop is a second copy. The
+    column, row and flat cell are whole numbers in float64 (exact below 2^53), converted
+    once to int64: one conversion and no 64-bit integer product per beam."""
+    fn = float(n)
     if inv > 0.0:
         for b in range(len(range_row)):
             d = range_row[b] * 0.01
-            ix = int(np.floor((x + d * wx) * inv)) - i0
-            iy = int(np.floor((y + d * wy) * inv)) - j0
-            inside = (range_row[b] != 0) & (ix >= 0) & (iy >= 0) & (ix < n) & (iy < n)
-            cells[b] = iy * n + ix if inside else -1
+            ix = np.floor((x + d * wx) * inv) - i0
+            iy = np.floor((y + d * wy) * inv) - j0
+            inside = (range_row[b] != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
+            cells[b] = np.int64(iy * fn + ix) if inside else -1
             above[b] = mount_m + d * tan_el[b] > clear
     else:
         for b in range(len(range_row)):
             d = range_row[b] * 0.01
-            ix = int(np.floor((x + d * wx) / cell)) - i0
-            iy = int(np.floor((y + d * wy) / cell)) - j0
-            inside = (range_row[b] != 0) & (ix >= 0) & (iy >= 0) & (ix < n) & (iy < n)
-            cells[b] = iy * n + ix if inside else -1
+            ix = np.floor((x + d * wx) / cell) - i0
+            iy = np.floor((y + d * wy) / cell) - j0
+            inside = (range_row[b] != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
+            cells[b] = np.int64(iy * fn + ix) if inside else -1
             above[b] = mount_m + d * tan_el[b] > clear
 
 

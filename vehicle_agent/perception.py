@@ -313,7 +313,7 @@ def _objects(pts: np.ndarray, pts32: np.ndarray, bounds: np.ndarray, grid: Grid,
     """The objects of ``k`` labels, label l's points (world) ``pts[bounds[l - 1]:bounds[l]]``
     (``pts32``: the same in float32); a label without points makes no object. ``cells``:
     the labelled cells' flat indices in grid order; ``sums``: ``_label_sums`` of the
-    points, if known."""
+    points, if known (then ``pts`` may hold their x and y only)."""
     if sums is None:
         sums = _label_sums(pts, bounds)
     cells_ij, cell_bounds, kept, box = _object_boxes(pts, bounds, sums, cells, labels.ravel(), k,
@@ -480,10 +480,13 @@ def _beam_cells(range_row, wx, wy, x, y, i0, j0, cell, inv, n, mount_m, tan_el, 
 @njit(cache=True)
 def _rays_by_label(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, rays, flat_labels, k):
     """``_group_by_label`` of ``rays`` (``_bin_rays``'), their world points placed as
-    ``frames._ranges_to_world`` places them: (points, the same in float32, bounds,
-    ``_label_sums`` of the points), label l's at ``bounds[l - 1]:bounds[l]``, in ray
-    order. The sums add each point as it is placed, in the same order: a pass less over
-    the points (latency-bound, 4 cycles a point)."""
+    ``frames._ranges_to_world`` places them: (their x and y, float64 (m, 2); the points,
+    float32 (m, 3); bounds; ``_label_sums`` of the points), label l's at
+    ``bounds[l - 1]:bounds[l]``, in ray order. The sums add each point as it is placed,
+    in the same order: a pass less over the points (latency-bound, 4 cycles a point);
+    past them only x and y are read in float64 (``_stats_of``), and the heights are not
+    written a second time (stores into memory not yet cached were half of this kernel's
+    time)."""
     counts = np.zeros(k + 1, dtype=np.int64)
     cur, run = 0, 0  # a label's rays come in runs: counted in a register, not in memory per ray
     for t in range(rays.shape[0]):
@@ -497,7 +500,7 @@ def _rays_by_label(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, rays, f
     for lab in range(1, k + 1):
         bounds[lab] = bounds[lab - 1] + counts[lab]
     fill = bounds[:-1].copy()
-    out = np.empty((bounds[k], 3))
+    out = np.empty((bounds[k], 2))
     out32 = np.empty((bounds[k], 3), dtype=np.float32)
     sums = np.zeros((k, 3))
     c, s = np.cos(yaw), np.sin(yaw)
@@ -522,7 +525,7 @@ def _rays_by_label(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, rays, f
             last_i = i
         d = range_cm[i, b] * 0.01
         px, py, pz = x + d * wx, y + d * wy, mount_m + d * tan_el[b]
-        out[p, 0], out[p, 1], out[p, 2] = px, py, pz
+        out[p, 0], out[p, 1] = px, py
         out32[p, 0], out32[p, 1], out32[p, 2] = px, py, pz  # as numpy's astype rounds
         sx += px
         sy += py
@@ -606,7 +609,8 @@ def _label_sums(pts, bounds):
 
 @njit(cache=True)
 def _stats_of(pts, bounds, sums):
-    """``_object_stats`` of the points, their ``_label_sums`` given."""
+    """``_object_stats`` of the points (x and y are read: the heights may be left out),
+    their ``_label_sums`` given."""
     k = len(bounds) - 1
     mean = np.zeros((k, 2))
     yaw, z_mean = np.zeros(k), np.zeros(k)

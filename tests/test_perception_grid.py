@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from vehicle_agent.perception import _beam_cells
+from vehicle_agent.perception import LatticeRaster, _beam_cells
 
 
 @njit(cache=True)
@@ -70,3 +70,42 @@ def test_an_azimuth_along_x_fills_the_cells_it_crosses():
     _beam_cells(range_row, 1.0, 0.0, 0.2, 0.2, 0, 0, 0.5, 2.0, 4, 1.9, tan_el, 0.25, cells, above)
     assert cells.tolist() == [1, 2, 3, -1, -1]
     assert above.tolist() == [True, False, False, False, True]
+
+
+def reference_cut(raster: LatticeRaster, i0: int, j0: int, n: int) -> np.ndarray:
+    """``LatticeRaster._cut`` as it was: the fill everywhere, then the overlap copied in."""
+    out = np.full((n, n), raster.fill, dtype=raster.values.dtype)
+    ny, nx = raster.values.shape
+    x0, y0 = i0 - raster.i0, j0 - raster.j0
+    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x0 + n, nx), min(y0 + n, ny)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = raster.values[sy0:sy1, sx0:sx1]
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), dtype=st.sampled_from([np.bool_, np.float64, np.uint8]))
+def test_a_window_equals_the_filled_copy(seed, dtype):
+    """Windows inside the raster, across its edges and outside it, of rasters of three
+    dtypes: the same values, dtype and layout as filling then copying."""
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, 3, (int(rng.integers(1, 30)), int(rng.integers(1, 30)))).astype(dtype)
+    raster = LatticeRaster(values, int(rng.integers(-20, 20)), int(rng.integers(-20, 20)), dtype(1))
+    n = int(rng.integers(1, 35))
+    ny, nx = values.shape
+    edges_x, edges_y = [-1, 0, 1, nx - n - 1, nx - n, nx - n + 1], [-1, 0, 1, ny - n - 1, ny - n, ny - n + 1]
+    x0 = int(rng.choice(edges_x)) if rng.random() < 0.7 else int(rng.integers(-n - 2, 32))  # at the edges, often
+    y0 = int(rng.choice(edges_y)) if rng.random() < 0.7 else int(rng.integers(-n - 2, 32))
+    i0, j0 = raster.i0 + x0, raster.j0 + y0
+    got, want = raster.window(i0, j0, n), reference_cut(raster, i0, j0, n)
+    assert got.dtype == want.dtype and got.flags.c_contiguous and not got.flags.writeable
+    assert got.tobytes() == want.tobytes() and not np.shares_memory(got, values)
+
+
+def test_a_window_inside_and_one_across_the_edge():
+    """A 3 x 3 raster at lattice (10, 20), values 0..8: the 2 x 2 window at (11, 21) is its
+    lower-right block; the one at (12, 22) has its corner value 8 and the fill elsewhere."""
+    raster = LatticeRaster(np.arange(9.0).reshape(3, 3), 10, 20, -1.0)
+    assert raster.window(11, 21, 2).tolist() == [[4.0, 5.0], [7.0, 8.0]]
+    assert raster.window(12, 22, 2).tolist() == [[8.0, -1.0], [-1.0, -1.0]]
+    assert raster.window(11, 20, 3).tolist() == [[1.0, 2.0, -1.0], [4.0, 5.0, -1.0], [7.0, 8.0, -1.0]]

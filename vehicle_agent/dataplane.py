@@ -265,11 +265,11 @@ class DataPlane:
         else:  # the same grid and objects from the range image, without the scan's world points
             lidar, pose = self.mission.lidar, (scan.pose.x_m, scan.pose.y_m, scan.pose.yaw_rad)
             check_fits(scan, lidar)
+            tables = ray_tables(lidar)
             with self._timed("grid"):
-                grid, binned = scan_grid(scan.range_cm, ray_tables(lidar), pose, self.mount_m, self.spec,
-                                         self.raster)
+                grid, binned = scan_grid(scan.range_cm, tables, pose, self.mount_m, self.spec, self.raster)
             with self._timed("components"):
-                detections = scan_objects(scan.range_cm, ray_tables(lidar), pose, self.mount_m, grid, binned)
+                detections = scan_objects(scan.range_cm, tables, pose, self.mount_m, grid, binned)
         with self._timed("tracking"):
             tracks = self.tracker.update(detections, scan.t_sim_s)
             self.lanes.snap(tracks)

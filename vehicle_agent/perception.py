@@ -197,9 +197,11 @@ class LatticeRaster:
         return out
 
     def _cut(self, i0: int, j0: int, n: int) -> np.ndarray:
-        out = np.full((n, n), self.fill, dtype=self.values.dtype)
         ny, nx = self.values.shape
         x0, y0 = i0 - self.i0, j0 - self.j0
+        if 0 <= x0 and x0 + n <= nx and 0 <= y0 and y0 + n <= ny:  # inside: a copy, no fill written first
+            return self.values[y0:y0 + n, x0:x0 + n].copy()
+        out = np.full((n, n), self.fill, dtype=self.values.dtype)
         sx0, sy0 = max(x0, 0), max(y0, 0)
         sx1, sy1 = min(x0 + n, nx), min(y0 + n, ny)
         if sx1 > sx0 and sy1 > sy0:

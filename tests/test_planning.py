@@ -2,7 +2,10 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.test_paths import numpy_arc_lengths, numpy_point_at
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.planning import path_until
 
@@ -345,3 +348,78 @@ def test_inflation_is_every_cell_within_the_radius_of_an_obstacle_cell():
                     want[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)] |= \
                         obst[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)]
         assert np.array_equal(_inflate(obst, radius), want), radius
+
+
+# ------------------------------------------------------------------ kernels against the numpy they replaced
+
+
+def numpy_trajectory_of(path, v0, v_cruise, accel, t_now_s, horizon_s=8.0, step_s=1.0):
+    """``trajectory_of`` as it was in numpy (the reference for its kernel)."""
+    def distance_with(t):
+        if v0 >= v_cruise:
+            return v0 * t
+        t_acc = (v_cruise - v0) / accel
+        if t <= t_acc:
+            return v0 * t + 0.5 * accel * t * t
+        return (v0 + v_cruise) / 2 * t_acc + v_cruise * (t - t_acc)
+
+    t = np.arange(0.0, horizon_s + 1e-9, step_s)
+    if len(path) < 2:
+        return np.column_stack([np.repeat(path[:1], len(t), axis=0), t_now_s + t]).astype(np.float32)
+    s = np.array([distance_with(x) for x in t])
+    cum = numpy_arc_lengths(path)
+    s = np.minimum(s, cum[-1])
+    return np.column_stack([numpy_point_at(path, s, cum), t_now_s + t]).astype(np.float32)
+
+
+def test_the_shared_trajectory_by_hand():
+    from vehicle_agent.planning import trajectory_of
+
+    # from rest at 2 m/s^2 towards 4 m/s: 1 m after 1 s, 4 m after 2 s, then 4 m/s; the path ends at 10 m
+    path = np.array([[0.0, 0.0], [10.0, 0.0]])
+    traj = trajectory_of(path, 0.0, 4.0, 2.0, 100.0, horizon_s=4.0)
+    np.testing.assert_array_equal(traj, np.array([[0, 0, 100], [1, 0, 101], [4, 0, 102], [8, 0, 103], [10, 0, 104]],
+                                                 dtype=np.float32))
+    standing = trajectory_of(np.array([[3.0, 4.0]]), 0.0, 0.0, 2.0, 7.5)
+    assert standing.dtype == np.float32 and standing.shape == (9, 3)
+    np.testing.assert_array_equal(standing[:, :2], np.tile([3.0, 4.0], (9, 1)))
+    np.testing.assert_array_equal(standing[:, 2], 7.5 + np.arange(9.0))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.floats(-500, 500), st.floats(-500, 500)), min_size=1, max_size=40),
+       st.floats(0.0, 20.0), st.floats(0.0, 20.0), st.sampled_from([2.0, 4.0, 0.7]), st.floats(0.0, 1e4),
+       st.sampled_from([8.0, 3.0]), st.sampled_from([1.0, 0.5]))
+def test_the_trajectory_kernel_matches_the_numpy_version_to_the_bit(points, v0, v_cruise, accel, t_now_s, horizon_s,
+                                                                     step_s):
+    from vehicle_agent.planning import trajectory_of
+
+    path = np.array(points, dtype=np.float64)
+    got = trajectory_of(path, v0, v_cruise, accel, t_now_s, horizon_s, step_s)
+    want = numpy_trajectory_of(path, v0, v_cruise, accel, t_now_s, horizon_s, step_s)
+    assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+
+
+def test_the_static_cells_mask_in_the_kernel_is_the_numpy_one():
+    """``_static_blocked_passable`` is ``_blocked_passable`` of ``(state == ABOVE) &
+    drivable & ~moving``: a hand-made grid, then random ones."""
+    from vehicle_agent.perception import ABOVE, GROUND
+    from vehicle_agent.planning import _blocked_passable, _static_blocked_passable
+
+    state = np.full((9, 9), GROUND, dtype=np.uint8)
+    state[4, 4] = state[0, 8] = state[8, 0] = ABOVE
+    drivable, moving, corridor = np.ones((9, 9), bool), np.zeros((9, 9), bool), np.ones((9, 9), bool)
+    drivable[0, 8] = False  # off the road: no obstacle to the planner
+    moving[8, 0] = True  # a mover's cell: the speed planner's business
+    blocked, passable = _static_blocked_passable(state, drivable, moving, corridor, 1, ABOVE)
+    want = np.zeros((9, 9), bool)
+    want[3:6, 4] = want[4, 3:6] = True  # the radius-1 disc round (4, 4)
+    assert np.array_equal(blocked, want) and np.array_equal(passable, drivable & ~want)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        state = rng.integers(0, 4, (50, 61)).astype(np.uint8)
+        drivable, moving, corridor = rng.random((3, 50, 61)) < [[[0.8]], [[0.1]], [[0.7]]]
+        drivable.setflags(write=False)  # as the grid's
+        got = _static_blocked_passable(state, drivable, moving, corridor, 3, ABOVE)
+        want = _blocked_passable((state == ABOVE) & drivable & ~moving, drivable, corridor, 3)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
-from vehicle_agent.paths import arc_lengths, point_at, progress_along
+from vehicle_agent.paths import _arc_lengths, _point_at, arc_lengths, point_at, progress_along
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
@@ -153,6 +153,19 @@ def _blocked_passable(static, drivable, corridor, radius):
         for x in range(nx):
             passable[y, x] = drivable[y, x] and not blocked[y, x] and corridor[y, x]
     return blocked, passable
+
+
+@njit(cache=True)
+def _static_blocked_passable(state, drivable, moving, corridor, radius, above):
+    """``_blocked_passable`` of the static obstacles, ``(state == above) & drivable &
+    ~moving``, taken in a pass of its own: not three whole-grid numpy passes and their
+    temporaries every tick."""
+    ny, nx = state.shape
+    static = np.empty((ny, nx), dtype=np.bool_)
+    for y in range(ny):
+        for x in range(nx):
+            static[y, x] = state[y, x] == above and drivable[y, x] and not moving[y, x]
+    return _blocked_passable(static, drivable, corridor, radius)
 
 
 _DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
@@ -329,8 +342,11 @@ class PathPlanner:
             self._route_cum = arc_lengths(self.route)
         return self._route_cum
 
-    def plan(self, grid: Grid, static_obstacles: np.ndarray, pose: Pose, speed_mps: float) -> np.ndarray:
-        """A world-frame path (m, 2) from the vehicle toward the route ahead.
+    def plan(self, grid: Grid, fused_state: np.ndarray, moving_cells: np.ndarray, pose: Pose,
+             speed_mps: float) -> np.ndarray:
+        """A world-frame path (m, 2) from the vehicle toward the route ahead, round the
+        static obstacles: ``fused_state``'s ABOVE cells that are drivable and not
+        ``moving_cells``.
 
         ``self.blocked`` keeps the inflated static obstacles the path had to avoid.
         """
@@ -341,7 +357,7 @@ class PathPlanner:
             raster = self._route_raster
             self._corridor_raster = LatticeRaster(raster.values <= cfg.corridor_m, raster.i0, raster.j0, False)
         corridor = self._corridor_raster.window(grid.i0, grid.j0, grid.state.shape[0])  # dist <= corridor_m
-        blocked, passable = _blocked_passable(static_obstacles, grid.drivable, corridor, radius)
+        blocked, passable = _static_blocked_passable(fused_state, grid.drivable, moving_cells, corridor, radius, ABOVE)
         self.blocked = blocked
         s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]), self.route_cum)
         route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0), self.route_cum)
@@ -649,16 +665,43 @@ def trajectory_of(path: np.ndarray, v0: float, v_cruise: float, accel: float, t_
                   horizon_s: float = SHARED_HORIZON_S, step_s: float = 1.0) -> np.ndarray:
     """Waypoints [x, y, t] every ``step_s`` along ``path``, from ``v0`` towards the cruise
     speed at ``accel``: what the control message shares (``Planner.run_step``)."""
-    t = np.arange(0.0, horizon_s + 1e-9, step_s)
+    t = _waypoint_times(horizon_s, step_s)
     if len(path) < 2:  # standing at its one point
-        return np.column_stack([np.repeat(path[:1], len(t), axis=0), t_now_s + t]).astype(np.float32)
-    s = np.array([_distance_with(v0, v_cruise, accel, x) for x in t])
-    cum = arc_lengths(path)
-    s = np.minimum(s, cum[-1])
-    return np.column_stack([point_at(path, s, cum), t_now_s + t]).astype(np.float32)
+        out = np.empty((len(t), 3), dtype=np.float32)
+        out[:, :2] = path[:1]
+        out[:, 2] = t_now_s + t
+        return out
+    return _trajectory(np.asarray(path, dtype=np.float64), t, float(v0), float(v_cruise), float(accel),
+                       float(t_now_s))
 
 
-def _distance_with(v0: float, v_cruise: float, accel: float, t: float) -> float:
+@functools.cache
+def _waypoint_times(horizon_s: float, step_s: float) -> np.ndarray:
+    """``trajectory_of``'s times from now (one array for every call, read-only)."""
+    out = np.arange(0.0, horizon_s + 1e-9, step_s)
+    out.setflags(write=False)
+    return out
+
+
+@njit(cache=True)
+def _trajectory(path, t, v0, v_cruise, accel, t_now_s):
+    """``trajectory_of`` of a path of two or more points, in one pass: each time's
+    distance (``_distance_with``, capped at the path's end), its point, the time, as
+    float32."""
+    cum = _arc_lengths(path)
+    s = np.empty(t.shape[0])
+    for k in range(t.shape[0]):
+        d = _distance_with(v0, v_cruise, accel, t[k])
+        s[k] = d if (np.isnan(d) or d < cum[-1]) else cum[-1]  # np.minimum: NaN propagates
+    xy = _point_at(path, s, cum)
+    out = np.empty((t.shape[0], 3), dtype=np.float32)
+    for k in range(t.shape[0]):
+        out[k, 0], out[k, 1], out[k, 2] = xy[k, 0], xy[k, 1], t_now_s + t[k]
+    return out
+
+
+@njit(cache=True)
+def _distance_with(v0, v_cruise, accel, t):
     if v0 >= v_cruise:
         return v0 * t
     t_acc = (v_cruise - v0) / accel
@@ -722,11 +765,10 @@ class Planner:
         cruise = self.mission.cruise_speed_mps
         if self.holds_still:
             return self.hold(pose, t_now_s)
-        static = (fused_state == ABOVE) & grid.drivable & ~moving_cells
         # a reused path starts where the vehicle was when it was planned: distances and
         # arrival times count from where the vehicle is now
         planner, here = self.path_planner, np.array([pose.x_m, pose.y_m])
-        planned = planner.plan(grid, static, pose, speed_mps)
+        planned = planner.plan(grid, fused_state, moving_cells, pose, speed_mps)
         path = path_from(planned, here, planner.along(planned), planner.progress(planned, here)) \
             if len(planned) >= 2 else planned
         s = arc_lengths(path)

@@ -305,31 +305,57 @@ def test_one_leg_rejects_exactly_where_the_hypot_would():
     assert np.array_equal(got, want) and want.any() and not want.all()
 
 
-def test_received_movers_boxes_and_cells_are_those_of_the_gathered_objects():
-    """``_boxes`` and ``_mark_object_cells`` over the chosen objects of a stack are
-    ``np.minimum/maximum.reduceat`` and ``_mark_cells`` over those objects gathered
-    (objects without points in between; a NaN coordinate propagates)."""
-    from vehicle_agent.agent import _boxes, _mark_cells, _mark_object_cells
+def numpy_received_movers(points, counts, velocity, static_mps, i0, j0, cell, inv, mask):
+    """What ``Agent._obstacles`` did for the received movers before ``_received_movers``:
+    the movers' points gathered, their boxes by ``np.minimum/maximum.reduceat`` (as the
+    ``_boxes`` kernel it had, a NaN coordinate propagating), their cells by ``_mark_cells``."""
+    from vehicle_agent.agent import _mark_cells
 
-    rng = np.random.default_rng(2)
-    counts = rng.integers(0, 40, 30)
-    counts[[3, 4]] = 0
-    points = rng.normal(0.0, 8.0, (int(counts.sum()), 3))
-    points[int(counts[:7].sum()) + 1, 0] = np.nan  # in object 7 (it has points)
-    assert counts[7] > 1
-    objects = (counts > 0) & (rng.random(30) < 0.6)
-    objects[7] = True
-    starts = np.cumsum(counts) - counts
-    gathered = points[np.repeat(objects, counts)]
-    run_starts = (np.cumsum(counts[objects]) - counts[objects])
-    lo, hi = _boxes(points, starts, counts, objects)
-    np.testing.assert_array_equal(lo, np.minimum.reduceat(gathered[:, :2], run_starts, axis=0))
-    np.testing.assert_array_equal(hi, np.maximum.reduceat(gathered[:, :2], run_starts, axis=0))
-    assert np.isnan(lo[int(objects[:7].sum()), 0])
-    got, want = np.zeros((40, 40), bool), np.zeros((40, 40), bool)
-    _mark_object_cells(points, starts, counts, objects, -20, -20, 0.5, 2.0, got)
-    _mark_cells(np.ascontiguousarray(gathered), -20, -20, 0.5, 2.0, want)
-    assert np.array_equal(got, want) and want.any()
+    movers = (counts > 0) & (np.hypot(velocity[:, 0], velocity[:, 1]) > static_mps)
+    if not movers.any():
+        return movers, np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+    gathered = points[np.repeat(movers, counts)]
+    run_starts = np.cumsum(counts[movers]) - counts[movers]
+    lo = np.minimum.reduceat(gathered[:, :2], run_starts, axis=0)
+    hi = np.maximum.reduceat(gathered[:, :2], run_starts, axis=0)
+    center, extent = (lo + hi) / 2, hi - lo
+    _mark_cells(np.ascontiguousarray(gathered), i0, j0, cell, inv, mask)
+    return movers, center, np.maximum(extent.max(axis=1), 1.0), np.maximum(extent.min(axis=1), 1.0)
+
+
+def test_a_received_mover_by_hand():
+    """Two objects: a parked one (no box) and a car-sized mover of three points."""
+    from vehicle_agent.agent import _received_movers
+
+    points = np.array([[0.2, 0.2, 1.0], [10.1, 3.1, 1.0], [14.1, 3.4, 1.0], [12.0, 4.6, 0.5]])
+    counts, velocity = np.array([1, 3]), np.array([[0.3, 0.3], [5.0, 0.0]])  # 0.42 m/s: not moving
+    mask = np.zeros((40, 40), dtype=bool)  # square, as the grid
+    movers, center, length, width = _received_movers(points, counts, velocity, 0.5, 0, 0, 0.5, 2.0, mask)
+    assert movers.tolist() == [False, True]
+    np.testing.assert_allclose(center, [[12.1, 3.85]])
+    np.testing.assert_allclose(length, [4.0])
+    np.testing.assert_allclose(width, [1.5])
+    assert sorted(zip(*np.nonzero(mask))) == [(6, 20), (6, 28), (9, 24)]  # rows y / 0.5, columns x / 0.5
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(0, 12), max_size=12), st.data())
+def test_received_movers_match_the_numpy_steps_to_the_bit(counts, data):
+    from vehicle_agent.agent import _received_movers
+
+    counts = np.array(counts, dtype=np.int64)
+    coord = st.one_of(st.floats(-30.0, 30.0), st.just(np.nan))
+    points = np.array(data.draw(st.lists(st.tuples(coord, coord, st.floats(0, 2)), min_size=int(counts.sum()),
+                                         max_size=int(counts.sum()))), dtype=np.float64).reshape(-1, 3)
+    speed = st.one_of(st.floats(-3.0, 3.0), st.sampled_from([0.5, -0.5, 0.0]))
+    velocity = np.array(data.draw(st.lists(st.tuples(speed, speed), min_size=len(counts), max_size=len(counts))),
+                        dtype=np.float64).reshape(-1, 2)
+    got_mask, want_mask = np.zeros((60, 60), dtype=bool), np.zeros((60, 60), dtype=bool)
+    got = _received_movers(points, counts, velocity, 0.5, -30, -30, 1.0, 1.0, got_mask)
+    want = numpy_received_movers(points, counts, velocity, 0.5, -30, -30, 1.0, 1.0, want_mask)
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes()
+    assert np.array_equal(got_mask, want_mask)
 
 
 def test_inflation_is_every_cell_within_the_radius_of_an_obstacle_cell():

@@ -115,18 +115,17 @@ class Agent:
         shared = self.dataplane.shared_batch
         if not len(shared):
             return own, moving
-        counts, velocity = shared.counts, shared.velocity
-        movers = (counts > 0) & (np.hypot(velocity[:, 0], velocity[:, 1]) > STATIC_MPS)
-        if not movers.any():
-            return own, moving
-        starts = np.cumsum(counts) - counts
         points = np.ascontiguousarray(shared.points, dtype=np.float64)
-        lo, hi = _boxes(points, starts, counts, movers)
-        center, extent = (lo + hi) / 2, hi - lo
-        vel = velocity[movers]
-        received = Obstacles(center, vel, np.maximum(extent.max(axis=1), 1.0), np.maximum(extent.min(axis=1), 1.0),
-                             np.full(len(vel), view.t_sim_s), np.arctan2(vel[:, 1], vel[:, 0]))
-        _mark_objects(moving, grid, points, starts, counts, movers)
+        movers, center, length, width = _received_movers(points, shared.counts, shared.velocity, STATIC_MPS, grid.i0,
+                                                         grid.j0, grid.spec.cell_m, exact_inverse(grid.spec.cell_m),
+                                                         moving)
+        if not len(center):
+            return own, moving
+        vel = shared.velocity[movers]
+        received = Obstacles(center, vel, length, width, np.full(len(vel), view.t_sim_s),
+                             np.arctan2(vel[:, 1], vel[:, 0]))
+        if not len(own):
+            return received, moving
         return Obstacles(*(np.concatenate([a, b]) for a, b in zip(own.columns(), received.columns()))), moving
 
 
@@ -151,14 +150,6 @@ class timed:
         cpu_key = stage + "_cpu"
         timings_ms[cpu_key] = timings_ms.get(cpu_key, 0.0) + (time.thread_time() - self.c0) * 1e3
         timings_ms[stage] = timings_ms.get(stage, 0.0) + (time.perf_counter() - self.t0) * 1e3
-
-
-def _mark_objects(mask: np.ndarray, grid, points: np.ndarray, starts: np.ndarray, counts: np.ndarray,
-                  objects: np.ndarray) -> None:
-    """``_mark`` the points (``points``, object after object, ``counts`` each from
-    ``starts``) of the objects where ``objects`` is set, without gathering them first."""
-    _mark_object_cells(np.ascontiguousarray(points, dtype=np.float64), starts, counts, objects, grid.i0, grid.j0,
-                       grid.spec.cell_m, exact_inverse(grid.spec.cell_m), mask)
 
 
 def _mark(mask: np.ndarray, grid, xy: np.ndarray) -> None:
@@ -189,38 +180,69 @@ def _mark_cells(xy, i0, j0, cell, inv, mask):
 
 
 @njit(cache=True)
-def _mark_object_cells(points, starts, counts, objects, i0, j0, cell, inv, mask):
-    """``_mark_cells`` of the points of every object where ``objects`` is set (object k's
-    are ``points[starts[k]:starts[k] + counts[k]]``): replaces gathering them with a
-    boolean index (a copy of ~10 000 points per tick at 40 vehicles)."""
-    for k in range(objects.shape[0]):
-        if objects[k]:
-            _mark_cells(points[starts[k]:starts[k] + counts[k]], i0, j0, cell, inv, mask)
+def _received_movers(points, counts, velocity, static_mps, i0, j0, cell, inv, mask):
+    """The received objects that move (points, and faster than ``static_mps``; object
+    k's points follow object k-1's): which they are (K,), and each one's box, as
+    the box of its points (its centre (K', 2), its longer and shorter side, at least
+    1 m; a NaN coordinate propagates) and their cells marked in ``mask`` (``_mark_cells``):
+    one pass over the points, which are cold in the cache (a pass for the boxes and one
+    for the cells took twice as long), and none of the dozen small numpy steps in
+    between (``tests/test_planning.py`` keeps those as the reference)."""
+    n_obj = counts.shape[0]
+    movers = np.zeros(n_obj, dtype=np.bool_)
+    for k in range(n_obj):
+        movers[k] = counts[k] > 0 and np.hypot(velocity[k, 0], velocity[k, 1]) > static_mps
+    n = movers.sum()
+    center, length, width = np.empty((n, 2)), np.empty(n), np.empty(n)
+    start, row = 0, 0
+    for k in range(n_obj):
+        if movers[k]:
+            lo_x = hi_x = points[start, 0]
+            lo_y = hi_y = points[start, 1]
+            for p in range(start + 1, start + counts[k]):
+                x, y = points[p, 0], points[p, 1]
+                if x < lo_x or x != x:  # once NaN, stays NaN: no value compares below it
+                    lo_x = x
+                if x > hi_x or x != x:
+                    hi_x = x
+                if y < lo_y or y != y:
+                    lo_y = y
+                if y > hi_y or y != y:
+                    hi_y = y
+            _mark_cells(points[start:start + counts[k]], i0, j0, cell, inv, mask)
+            center[row, 0], center[row, 1] = (lo_x + hi_x) / 2, (lo_y + hi_y) / 2
+            ext_x, ext_y = hi_x - lo_x, hi_y - lo_y
+            length[row] = _at_least_1(_nan_max(ext_x, ext_y))
+            width[row] = _at_least_1(_nan_min(ext_x, ext_y))
+            row += 1
+        start += counts[k]
+    return movers, center, length, width
 
 
 @njit(cache=True)
-def _boxes(points, starts, counts, objects):
-    """(K', 2) each, the lower and upper x and y of the points of every object where
-    ``objects`` is set (object k's are ``points[starts[k]:starts[k] + counts[k]]``, at
-    least one): ``np.minimum.reduceat`` / ``np.maximum.reduceat`` over the gathered
-    objects, a NaN coordinate propagating as there, without gathering them."""
-    lo = np.empty((objects.sum(), 2))
-    hi = np.empty((objects.sum(), 2))
-    row = 0
-    for k in range(objects.shape[0]):
-        if not objects[k]:
-            continue
-        for d in range(2):
-            a = b = points[starts[k], d]
-            for p in range(starts[k] + 1, starts[k] + counts[k]):
-                v = points[p, d]
-                if v < a or v != v:  # once NaN, stays NaN: no value compares below it
-                    a = v
-                if v > b or v != v:
-                    b = v
-            lo[row, d], hi[row, d] = a, b
-        row += 1
-    return lo, hi
+def _nan_max(a, b):
+    """``np.max`` of (a, b): NaN if either is."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@njit(cache=True)
+def _nan_min(a, b):
+    """``np.min`` of (a, b): NaN if either is."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@njit(cache=True)
+def _at_least_1(v):
+    """``np.maximum(v, 1.0)``: NaN stays."""
+    return v if (v != v or v > 1.0) else 1.0
 
 
 def _retimed(traj: np.ndarray, t_now_s: float) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 from channel_proxy.emp import voronoi_segment
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, LidarConfig, Pose, Scan
-from vehicle_agent.agent import Agent, _boxes, _mark_cells, _mark_object_cells
+from vehicle_agent.agent import Agent, _mark_cells, _received_movers
 from vehicle_agent.agreement import AgreementConfig, HeardControl, decide
 from vehicle_agent.dataplane import Neighbors, _lane_segment
 from vehicle_agent.frames import scan_to_world
@@ -59,10 +59,8 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     warm_fusion_kernels()
     warm_payload_kernels()
     _mark_cells(np.zeros((1, 2)), 0, 0, 0.5, 2.0, np.zeros((2, 2), dtype=np.bool_))  # movers' cells: none here
-    one = np.ones(1, dtype=np.int64)  # a received mover's cells: none here either
-    _mark_object_cells(np.zeros((1, 3)), one - 1, one, np.ones(1, dtype=np.bool_), 0, 0, 0.5, 2.0,
-                       np.zeros((2, 2), dtype=np.bool_))
-    _boxes(np.zeros((1, 3)), one - 1, one, np.ones(1, dtype=np.bool_))  # ... and its box
+    _received_movers(np.zeros((1, 3)), np.ones(1, dtype=np.int64), np.ones((1, 2)), 0.5, 0, 0, 0.5, 2.0,
+                     np.zeros((2, 2), dtype=np.bool_))  # a received mover: its box and its cells
     lanes = agent.dataplane.lanes  # a mover's lane (none moves in the first scan)
     _lane_segment(np.zeros((1, 2)), np.ones((1, 2)), np.ones(1), lanes.a, lanes.d, lanes.length, lanes.half, 0.9)
     key = np.zeros((1, 2), dtype=np.int64)  # one starved object: its key's columns are contiguous

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from tests.test_paths import numpy_arc_lengths, numpy_point_at
 from vehicle_agent.paths import arc_lengths
@@ -449,3 +450,129 @@ def test_the_static_cells_mask_in_the_kernel_is_the_numpy_one():
         got = _static_blocked_passable(state, drivable, moving, corridor, 3, ABOVE)
         want = _blocked_passable((state == ABOVE) & drivable & ~moving, drivable, corridor, 3)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+# ------------------------------------------------------------------ A* against the kernel it replaced
+
+REF_DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
+REF_DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])
+
+
+@njit(cache=True)
+def reference_astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_cost):
+    """``planning._astar`` as it was before its states were closed by cost (the reference)."""
+    ny, nx = passable.shape
+    n_states = ny * nx * 8
+    g = np.full(n_states, np.inf)
+    parent = np.full(n_states, -1, dtype=np.int64)
+    closed = np.zeros(n_states, dtype=np.bool_)
+    capacity = 4 * n_states  # lazy deletion pushes a state once per improvement (at most its in-degree, 5)
+    heap_f = np.empty(capacity)
+    heap_s = np.empty(capacity, dtype=np.int64)
+    size = 0
+    s0 = (start_r * nx + start_c) * 8 + start_dir
+    g[s0] = 0.0
+    heap_f[0] = 0.0
+    heap_s[0] = s0
+    size = 1
+    goal_state = -1
+    while size > 0:
+        f, s = heap_f[0], heap_s[0]
+        size -= 1
+        # sift down the last element from the root
+        lf, ls = heap_f[size], heap_s[size]
+        i = 0
+        while True:
+            c = 2 * i + 1
+            if c >= size:
+                break
+            if c + 1 < size and heap_f[c + 1] < heap_f[c]:
+                c += 1
+            if heap_f[c] < lf:
+                heap_f[i], heap_s[i] = heap_f[c], heap_s[c]
+                i = c
+            else:
+                break
+        heap_f[i], heap_s[i] = lf, ls
+        if closed[s]:
+            continue
+        closed[s] = True
+        cell, d = s // 8, s % 8
+        r, cc = cell // nx, cell % nx
+        if r == goal_r and cc == goal_c:
+            goal_state = s
+            break
+        for nd in range(8):
+            turn = abs(nd - d)
+            turn = min(turn, 8 - turn)
+            if turn > 2:  # no more than 90 degrees in one cell
+                continue
+            rr, c2 = r + REF_DY[nd], cc + REF_DX[nd]
+            if rr < 0 or rr >= ny or c2 < 0 or c2 >= nx or not passable[rr, c2]:
+                continue
+            step = 1.4142135 if nd % 2 == 1 else 1.0
+            ns = (rr * nx + c2) * 8 + nd
+            cost = g[s] + step * (1.0 + extra[rr, c2]) + turn_cost * turn
+            if cost < g[ns] and not closed[ns]:
+                if size == capacity:  # cannot happen within the in-degree bound; fail rather than overflow
+                    return np.zeros((0, 2), dtype=np.int64)
+                g[ns] = cost
+                parent[ns] = s
+                h = np.hypot(rr - goal_r, c2 - goal_c)
+                # sift up
+                j = size
+                size += 1
+                while j > 0:
+                    p = (j - 1) // 2
+                    if heap_f[p] <= cost + h:
+                        break
+                    heap_f[j], heap_s[j] = heap_f[p], heap_s[p]
+                    j = p
+                heap_f[j], heap_s[j] = cost + h, ns
+    if goal_state < 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    n = 0
+    s = goal_state
+    while s >= 0:
+        n += 1
+        s = parent[s]
+    out = np.empty((n, 2), dtype=np.int64)
+    s = goal_state
+    for k in range(n - 1, -1, -1):
+        cell = s // 8
+        out[k, 0], out[k, 1] = cell // nx, cell % nx
+        s = parent[s]
+    return out
+
+
+
+def test_astar_by_hand():
+    """A wall with one gap: the path goes through it, heading east first."""
+    from vehicle_agent.planning import _astar
+
+    passable = np.ones((7, 9), dtype=bool)
+    passable[:, 4] = False
+    passable[5, 4] = True
+    cells = _astar(passable, np.zeros((7, 9)), 1, 0, 0, 1, 8, 0.05)
+    assert cells[0].tolist() == [1, 0] and cells[-1].tolist() == [1, 8] and [5, 4] in cells.tolist()
+    assert passable[cells[:, 0], cells[:, 1]].all()
+    assert (np.abs(np.diff(cells, axis=0)).max(axis=1) == 1).all()  # one 8-connected step at a time
+    passable[5, 4] = False
+    assert _astar(passable, np.zeros((7, 9)), 1, 0, 0, 1, 8, 0.05).shape == (0, 2)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(3, 40), st.integers(3, 40), st.floats(0.0, 0.45), st.integers(0, 2**32 - 1),
+       st.sampled_from([0.05, 0.5, 0.0]), st.booleans())
+def test_astar_matches_the_reference_kernel(ny, nx, density, seed, turn_cost, flat):
+    from vehicle_agent.planning import _astar
+
+    rng = np.random.default_rng(seed)
+    passable = rng.random((ny, nx)) >= density
+    extra = np.zeros((ny, nx)) if flat else 0.4 * rng.integers(0, 12, (ny, nx)) * 0.5  # ties, as on the grid
+    (sr, sc), (gr, gc) = rng.integers(0, [ny, nx]), rng.integers(0, [ny, nx])
+    passable[sr, sc] = True
+    d = int(rng.integers(0, 8))
+    got = _astar(passable, extra, sr, sc, d, gr, gc, turn_cost)
+    want = reference_astar(passable, extra, sr, sc, d, gr, gc, turn_cost)
+    assert got.shape == want.shape and np.array_equal(got, want)

@@ -172,26 +172,43 @@ _DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 _DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])
 
 
+def _next_headings() -> np.ndarray:
+    """(8, 5): the headings a move may take after one in heading d (at most 90 degrees
+    in one cell), ascending, as ``_astar`` tries them."""
+    out = np.empty((8, 5), dtype=np.int64)
+    for d in range(8):
+        out[d] = [nd for nd in range(8) if min(abs(nd - d), 8 - abs(nd - d)) <= 2]
+    return out
+
+
+_NEXT = _next_headings()
+
+
 @njit(cache=True)
 def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_cost):
-    """A* over (cell, heading of the last move); returns the path cells (m, 2) or (0, 2)."""
+    """A* over (cell, heading of the last move); returns the path cells (m, 2) or (0, 2).
+
+    A state is closed by setting its cost to -inf (no cost is below it: a closed state
+    is never reopened), which spares a closed flag per state; parents are read only
+    along the path found, so they are not filled beforehand, and they and the heap's
+    states are int32 (a window has at most 280 x 280 x 8 states): less memory
+    touched per search."""
     ny, nx = passable.shape
     n_states = ny * nx * 8
     g = np.full(n_states, np.inf)
-    parent = np.full(n_states, -1, dtype=np.int64)
-    closed = np.zeros(n_states, dtype=np.bool_)
+    parent = np.empty(n_states, dtype=np.int32)
     capacity = 4 * n_states  # lazy deletion pushes a state once per improvement (at most its in-degree, 5)
     heap_f = np.empty(capacity)
-    heap_s = np.empty(capacity, dtype=np.int64)
-    size = 0
+    heap_s = np.empty(capacity, dtype=np.int32)
     s0 = (start_r * nx + start_c) * 8 + start_dir
     g[s0] = 0.0
+    parent[s0] = -1
     heap_f[0] = 0.0
     heap_s[0] = s0
     size = 1
     goal_state = -1
     while size > 0:
-        f, s = heap_f[0], heap_s[0]
+        s = heap_s[0]
         size -= 1
         # sift down the last element from the root
         lf, ls = heap_f[size], heap_s[size]
@@ -208,26 +225,26 @@ def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_co
             else:
                 break
         heap_f[i], heap_s[i] = lf, ls
-        if closed[s]:
+        g_s = g[s]
+        if g_s == -np.inf:  # closed
             continue
-        closed[s] = True
+        g[s] = -np.inf
         cell, d = s // 8, s % 8
         r, cc = cell // nx, cell % nx
         if r == goal_r and cc == goal_c:
             goal_state = s
             break
-        for nd in range(8):
+        for k in range(5):
+            nd = _NEXT[d, k]
             turn = abs(nd - d)
             turn = min(turn, 8 - turn)
-            if turn > 2:  # no more than 90 degrees in one cell
-                continue
             rr, c2 = r + _DY[nd], cc + _DX[nd]
             if rr < 0 or rr >= ny or c2 < 0 or c2 >= nx or not passable[rr, c2]:
                 continue
             step = 1.4142135 if nd % 2 == 1 else 1.0
             ns = (rr * nx + c2) * 8 + nd
-            cost = g[s] + step * (1.0 + extra[rr, c2]) + turn_cost * turn
-            if cost < g[ns] and not closed[ns]:
+            cost = g_s + step * (1.0 + extra[rr, c2]) + turn_cost * turn
+            if cost < g[ns]:
                 if size == capacity:  # cannot happen within the in-degree bound; fail rather than overflow
                     return np.zeros((0, 2), dtype=np.int64)
                 g[ns] = cost
@@ -257,7 +274,6 @@ def _astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_co
         out[k, 0], out[k, 1] = cell // nx, cell % nx
         s = parent[s]
     return out
-
 
 @njit(cache=True)
 def _distance_to_polyline(xs, ys, route):

@@ -576,3 +576,42 @@ def test_astar_matches_the_reference_kernel(ny, nx, density, seed, turn_cost, fl
     got = _astar(passable, extra, sr, sc, d, gr, gc, turn_cost)
     want = reference_astar(passable, extra, sr, sc, d, gr, gc, turn_cost)
     assert got.shape == want.shape and np.array_equal(got, want)
+
+
+def numpy_snap_to_route(path, route, cell_m):
+    """``planning._snap_to_route`` as it was in numpy (the reference for its kernel)."""
+    a, ab = route[:-1], np.diff(route, axis=0)
+    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    t = np.clip(np.einsum("pij,ij->pi", path[:, None, :] - a[None], ab) / len2, 0.0, 1.0)  # (P, S)
+    foot = a[None] + t[..., None] * ab[None]  # (P, S, 2)
+    dist = np.linalg.norm(foot - path[:, None, :], axis=2)
+    best = np.argmin(dist, axis=1)
+    nearest = foot[np.arange(len(path)), best]
+    close = dist[np.arange(len(path)), best] <= cell_m * 0.75
+    out = path.copy()
+    out[close] = nearest[close]
+    return out
+
+
+def test_a_grid_path_snaps_onto_the_route_within_three_quarters_of_a_cell():
+    from vehicle_agent.planning import _snap_to_route
+
+    route = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    path = np.array([[1.25, 0.25], [5.0, -0.25], [9.75, 5.25], [6.0, 2.0], [12.0, 12.0]])
+    want = np.array([[1.25, 0.0], [5.0, 0.0], [10.0, 5.25], [6.0, 2.0], [12.0, 12.0]])  # the last two: too far
+    np.testing.assert_array_equal(_snap_to_route(path, route, 0.5), want)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.floats(-50, 50), st.floats(-50, 50)), min_size=2, max_size=25),
+       st.lists(st.tuples(st.floats(-50, 50), st.floats(-50, 50)), max_size=30), st.sampled_from([0.5, 4.0, 30.0]),
+       st.booleans())
+def test_snapping_matches_the_numpy_version_to_the_bit(route, path, cell_m, on_cells):
+    from vehicle_agent.planning import _snap_to_route
+
+    route, path = np.array(route, dtype=np.float64), np.array(path, dtype=np.float64).reshape(-1, 2)
+    if on_cells:  # grid cell centres, some of them near the route (ties between segments at its vertices)
+        path = (np.floor(np.concatenate([path, route]) / 0.5) + 0.5) * 0.5
+    route.setflags(write=False)  # as the mission's
+    got, want = _snap_to_route(path, route, cell_m), numpy_snap_to_route(path, route, cell_m)
+    assert got.tobytes() == want.tobytes()

@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
-from vehicle_agent.paths import _arc_lengths, _point_at, arc_lengths, point_at, progress_along
+from vehicle_agent.paths import _arc_lengths, _clip, _point_at, arc_lengths, point_at, progress_along
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
@@ -427,16 +427,35 @@ class PathPlanner:
 def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:
     """Where the grid path runs along the route (within a cell), put it on the route
     itself: a lane centre need not fall on a cell centre."""
-    a, ab = route[:-1], np.diff(route, axis=0)
-    len2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
-    t = np.clip(np.einsum("pij,ij->pi", path[:, None, :] - a[None], ab) / len2, 0.0, 1.0)  # (P, S)
-    foot = a[None] + t[..., None] * ab[None]  # (P, S, 2)
-    dist = np.linalg.norm(foot - path[:, None, :], axis=2)
-    best = np.argmin(dist, axis=1)
-    nearest = foot[np.arange(len(path)), best]
-    close = dist[np.arange(len(path)), best] <= cell_m * 0.75
+    return _snapped(np.ascontiguousarray(path, dtype=np.float64), np.asarray(route, dtype=np.float64), cell_m * 0.75)
+
+
+@njit(cache=True)
+def _snapped(path, route, within_m):
+    """Each path point moved to its foot on the nearest route segment (the first nearest;
+    a NaN distance wins, as ``np.argmin``) where that is within ``within_m``: the
+    (points x segments) numpy passes and their temporaries of ``_snap_to_route``, one
+    point at a time, with their float operations in the same order."""
     out = path.copy()
-    out[close] = nearest[close]
+    for p in range(path.shape[0]):
+        x, y = path[p, 0], path[p, 1]
+        best_d, best_x, best_y = np.inf, 0.0, 0.0
+        for k in range(route.shape[0] - 1):
+            ax, ay = route[k, 0], route[k, 1]
+            abx, aby = route[k + 1, 0] - ax, route[k + 1, 1] - ay
+            len2 = abx * abx + aby * aby
+            if len2 < 1e-12:  # np.maximum(., 1e-12): NaN stays
+                len2 = 1e-12
+            t = _clip(((x - ax) * abx + (y - ay) * aby) / len2, 0.0, 1.0)
+            fx, fy = ax + t * abx, ay + t * aby
+            dx, dy = fx - x, fy - y
+            d = np.sqrt(dx * dx + dy * dy)
+            if k == 0 or d < best_d or (np.isnan(d) and not np.isnan(best_d)):
+                best_d, best_x, best_y = d, fx, fy
+            if np.isnan(d):
+                break
+        if best_d <= within_m:
+            out[p, 0], out[p, 1] = best_x, best_y
     return out
 
 

@@ -458,7 +458,7 @@ REF_DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 REF_DX = np.array([1, 1, 0, -1, -1, -1, 0, 1])
 
 
-@njit(cache=True)
+@njit  # not cached: a test module is imported under more than one name
 def reference_astar(passable, extra, start_r, start_c, start_dir, goal_r, goal_c, turn_cost):
     """``planning._astar`` as it was before its states were closed by cost (the reference)."""
     ny, nx = passable.shape
@@ -615,3 +615,143 @@ def test_snapping_matches_the_numpy_version_to_the_bit(route, path, cell_m, on_c
     route.setflags(write=False)  # as the mission's
     got, want = _snap_to_route(path, route, cell_m), numpy_snap_to_route(path, route, cell_m)
     assert got.tobytes() == want.tobytes()
+
+
+# ------------------------------------------------------------------ the conflict test against the code it replaced
+
+def reference_body_centers(path, spec, full):
+    """``planning._body_centers`` as it was in numpy (the reference)."""
+    body_half = max(spec.length_m - spec.width_m, 0.0) / 2
+    m = len(path)
+    centers = np.empty((3, m, 2))
+    # rear and front in one point_at (np.interp's value at a point does not depend on the others)
+    centers[0::2] = numpy_point_at(path, np.concatenate([full - body_half, full + body_half]), full).reshape(2, m, 2)
+    centers[1] = path
+    return centers, float(spec.width_m / 2)
+
+
+@njit  # not cached: a test module is imported under more than one name
+def reference_below(dx, dy, reach):
+    """``np.hypot(dx, dy) < reach``, without the hypot where one leg alone reaches: a
+    (faithfully rounded) hypot is never below its longer leg, so the answer is the same."""
+    if abs(dx) >= reach or abs(dy) >= reach:
+        return False
+    return np.hypot(dx, dy) < reach
+
+
+@njit  # not cached: a test module is imported under more than one name
+def reference_near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
+    """``planning._near`` before its column mask (the reference). (M, O): at some time ``times[m, k]`` (row 0 for all m when ``times`` has one
+    row) the obstacle's oriented box, at ``xy`` ``dt_obs`` ago and moving at ``vel``,
+    comes within ``reach_m`` of one of the ego's body circles ``centers[:, m]``.
+
+    A (path point,
+    obstacle) pair is skipped when the point is farther than ``reach_m`` plus the box's
+    half diagonal from the whole segment the box centre sweeps over those times (a
+    lower bound on every tested distance), which most pairs are."""
+    n_c, m_pts = centers.shape[0], centers.shape[1]
+    n_obs, n_k = xy.shape[0], times.shape[1]
+    out = np.zeros((m_pts, n_obs), dtype=np.bool_)
+    t_min, t_max = np.empty(times.shape[0]), np.empty(times.shape[0])  # each row's time span
+    for row in range(times.shape[0]):
+        t_lo, t_hi = times[row, 0], times[row, 0]
+        for k in range(1, n_k):
+            t_lo = min(t_lo, times[row, k])
+            t_hi = max(t_hi, times[row, k])
+        t_min[row], t_max[row] = t_lo, t_hi
+    for o in range(n_obs):
+        bound = reach_m + np.hypot(half[o, 0], half[o, 1]) + 1e-6
+        for m in range(m_pts):
+            row = m if times.shape[0] > 1 else 0
+            t_lo, t_hi = t_min[row] + dt_obs[o], t_max[row] + dt_obs[o]
+            ax, ay = xy[o, 0] + vel[o, 0] * t_lo, xy[o, 1] + vel[o, 1] * t_lo
+            bx, by = xy[o, 0] + vel[o, 0] * t_hi - ax, xy[o, 1] + vel[o, 1] * t_hi - ay
+            len2 = bx * bx + by * by
+            far = True
+            for c in range(n_c):
+                px, py = centers[c, m, 0] - ax, centers[c, m, 1] - ay
+                f = 0.0 if len2 <= 0.0 else min(max((px * bx + py * by) / len2, 0.0), 1.0)
+                if reference_below(px - f * bx, py - f * by, bound):
+                    far = False
+                    break
+            if far:
+                continue
+            for k in range(n_k):
+                t = times[row, k] + dt_obs[o]
+                ox, oy = xy[o, 0] + vel[o, 0] * t, xy[o, 1] + vel[o, 1] * t
+                for c in range(n_c):
+                    dx, dy = centers[c, m, 0] - ox, centers[c, m, 1] - oy
+                    u = abs(dx * cos_h[o] + dy * sin_h[o]) - half[o, 0]  # along the obstacle
+                    v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half[o, 1]  # across it
+                    if reference_below(max(u, 0.0), max(v, 0.0), reach_m):
+                        out[m, o] = True
+                        break
+                if out[m, o]:
+                    break
+    return out
+
+
+def reference_first_conflict(path, t_path, spec, obstacles, t_now_s, cfg, s_path=None):
+    """``planning.first_conflict`` before ``_near`` took a column mask and the boxes'
+    sides and ``_body_centers`` became a kernel (the reference)."""
+    from vehicle_agent.planning import _sweep_times, _time_offsets
+
+    if not len(obstacles) or len(path) < 2:
+        return None
+    s = numpy_arc_lengths(path) if s_path is None else s_path
+    within = t_path <= cfg.horizon_s
+    if not within.any():
+        return None
+    path, s, t_path = path[within], s[within], t_path[within]
+    xy, vel = obstacles.xy, obstacles.velocity  # (O, 2)
+    dt_obs = t_now_s - obstacles.t_sim_s
+    half = np.column_stack([obstacles.length_m / 2, obstacles.width_m / 2])  # (O, 2)
+    cos_h, sin_h = np.cos(obstacles.heading_rad), np.sin(obstacles.heading_rad)
+    centers, radius = reference_body_centers(path, spec, s)
+    offsets = _time_offsets(cfg.time_window_s)
+    when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
+    timed = reference_near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
+    timed[s < 0.5] = False  # where the vehicle already is
+    conflicting = timed.any(axis=0)  # (O,)
+    if not conflicting.any():
+        return None
+    c = conflicting
+    sweep_t = _sweep_times(cfg.horizon_s)  # the same times at every waypoint
+    zone = reference_near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
+                          radius + cfg.wait_clear_m)  # (M, O')
+    first = zone.any(axis=1)
+    if first[0]:
+        # already inside the zone (out in the oncoming lane when the car came into view):
+        # stopping here waits in its way. Drive on out of this stretch of the zone unless
+        # the conflict falls inside it: then there is no clearing it, stop.
+        ahead = np.flatnonzero(~first)
+        leave = int(ahead[0]) if len(ahead) else len(first)
+        if timed[:leave, conflicting].any():
+            return float(s[min(1, len(s) - 1)])
+        first[:leave] = False
+    first[s < 0.5] = False
+    return float(s[np.argmax(first)]) if first.any() else None
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.floats(0.0, 15.0), st.booleans())
+def test_first_conflict_matches_the_previous_kernels(seed, n_obs, speed, curved):
+    """Random traffic round a straight or curved path: the same stop (or none) to the
+    bit as the previous ``_near`` on the caller's copies and the numpy body circles."""
+    from protocol.messages import VehicleSpec
+    from vehicle_agent.planning import Obstacles, PlannerConfig, first_conflict
+
+    rng = np.random.default_rng(seed)
+    x = np.arange(0.0, 60.0, 0.5 + rng.random())
+    path = np.column_stack([x, 0.02 * x**2 if curved else np.zeros_like(x)])
+    t_path = arc_lengths(path) / max(speed, 1.0)
+    xy = rng.uniform([-5.0, -30.0], [65.0, 30.0], (n_obs, 2))
+    vel = rng.normal(0.0, 6.0, (n_obs, 2)) * (rng.random((n_obs, 1)) < 0.8)
+    obstacles = Obstacles(xy, vel, np.maximum(rng.uniform(0.5, 12.0, n_obs), 4.0),
+                          np.maximum(rng.uniform(0.5, 3.0, n_obs), 1.8), rng.uniform(-0.3, 0.0, n_obs),
+                          np.arctan2(vel[:, 1], vel[:, 0]))
+    spec = VehicleSpec(**SPEC)
+    cfg = PlannerConfig()
+    got = first_conflict(path, t_path, spec, obstacles, 0.0, cfg)
+    want = reference_first_conflict(path, t_path, spec, obstacles, 0.0, cfg)
+    assert got == want or (got is None and want is None)

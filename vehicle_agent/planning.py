@@ -548,12 +548,25 @@ def _body_centers(path: np.ndarray, spec: VehicleSpec, full: np.ndarray) -> tupl
     as far as it is), short of the corners by 0.37 m diagonally at most. ``full``: the
     path's ``arc_lengths``."""
     body_half = max(spec.length_m - spec.width_m, 0.0) / 2
-    m = len(path)
+    return _body_circles(np.asarray(path, dtype=np.float64), full, body_half), float(spec.width_m / 2)
+
+
+@njit(cache=True)
+def _body_circles(path, full, body_half):
+    """``_body_centers``' circles: the rear and front ones ``body_half`` behind and ahead
+    along the path, in one ``_point_at`` (np.interp's value at a point does not depend
+    on the others), the middle one the path point."""
+    m = path.shape[0]
+    s = np.empty(2 * m)
+    for k in range(m):
+        s[k], s[m + k] = full[k] - body_half, full[k] + body_half
+    ends = _point_at(path, s, full)
     centers = np.empty((3, m, 2))
-    # rear and front in one point_at (np.interp's value at a point does not depend on the others)
-    centers[0::2] = point_at(path, np.concatenate([full - body_half, full + body_half]), full).reshape(2, m, 2)
-    centers[1] = path
-    return centers, float(spec.width_m / 2)
+    for k in range(m):
+        centers[0, k, 0], centers[0, k, 1] = ends[k, 0], ends[k, 1]
+        centers[1, k, 0], centers[1, k, 1] = path[k, 0], path[k, 1]
+        centers[2, k, 0], centers[2, k, 1] = ends[m + k, 0], ends[m + k, 1]
+    return centers
 
 
 @njit(cache=True)
@@ -566,10 +579,12 @@ def _below(dx, dy, reach):
 
 
 @njit(cache=True)
-def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
-    """(M, O): at some time ``times[m, k]`` (row 0 for all m when ``times`` has one
-    row) the obstacle's oriented box, at ``xy`` ``dt_obs`` ago and moving at ``vel``,
-    comes within ``reach_m`` of one of the ego's body circles ``centers[:, m]``.
+def _near(centers, times, xy, vel, dt_obs, length, width, cos_h, sin_h, reach_m, tested):
+    """(M, O'): at some time ``times[m, k]`` (row 0 for all m when ``times`` has one
+    row) the obstacle's oriented box (``length`` x ``width``), at ``xy`` ``dt_obs`` ago
+    and moving at ``vel``, comes within ``reach_m`` of one of the ego's body circles
+    ``centers[:, m]``; a column for each of the O' obstacles where ``tested`` is set (a
+    column mask, not the caller's copies of every obstacle array).
 
     A (path point,
     obstacle) pair is skipped when the point is farther than ``reach_m`` plus the box's
@@ -577,7 +592,7 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
     lower bound on every tested distance), which most pairs are."""
     n_c, m_pts = centers.shape[0], centers.shape[1]
     n_obs, n_k = xy.shape[0], times.shape[1]
-    out = np.zeros((m_pts, n_obs), dtype=np.bool_)
+    out = np.zeros((m_pts, tested.sum()), dtype=np.bool_)
     t_min, t_max = np.empty(times.shape[0]), np.empty(times.shape[0])  # each row's time span
     for row in range(times.shape[0]):
         t_lo, t_hi = times[row, 0], times[row, 0]
@@ -585,8 +600,13 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
             t_lo = min(t_lo, times[row, k])
             t_hi = max(t_hi, times[row, k])
         t_min[row], t_max[row] = t_lo, t_hi
+    q = -1  # the output column
     for o in range(n_obs):
-        bound = reach_m + np.hypot(half[o, 0], half[o, 1]) + 1e-6
+        if not tested[o]:
+            continue
+        q += 1
+        half_l, half_w = length[o] / 2, width[o] / 2
+        bound = reach_m + np.hypot(half_l, half_w) + 1e-6
         for m in range(m_pts):
             row = m if times.shape[0] > 1 else 0
             t_lo, t_hi = t_min[row] + dt_obs[o], t_max[row] + dt_obs[o]
@@ -607,12 +627,12 @@ def _near(centers, times, xy, vel, dt_obs, half, cos_h, sin_h, reach_m):
                 ox, oy = xy[o, 0] + vel[o, 0] * t, xy[o, 1] + vel[o, 1] * t
                 for c in range(n_c):
                     dx, dy = centers[c, m, 0] - ox, centers[c, m, 1] - oy
-                    u = abs(dx * cos_h[o] + dy * sin_h[o]) - half[o, 0]  # along the obstacle
-                    v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half[o, 1]  # across it
+                    u = abs(dx * cos_h[o] + dy * sin_h[o]) - half_l  # along the obstacle
+                    v = abs(-dx * sin_h[o] + dy * cos_h[o]) - half_w  # across it
                     if _below(max(u, 0.0), max(v, 0.0), reach_m):
-                        out[m, o] = True
+                        out[m, q] = True
                         break
-                if out[m, o]:
+                if out[m, q]:
                     break
     return out
 
@@ -665,20 +685,20 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     path, s, t_path = path[within], s[within], t_path[within]
     xy, vel = obstacles.xy, obstacles.velocity  # (O, 2)
     dt_obs = t_now_s - obstacles.t_sim_s
-    half = np.column_stack([obstacles.length_m / 2, obstacles.width_m / 2])  # (O, 2)
+    length, width = obstacles.length_m, obstacles.width_m
     cos_h, sin_h = np.cos(obstacles.heading_rad), np.sin(obstacles.heading_rad)
     centers, radius = _body_centers(path, spec, s)
     offsets = _time_offsets(cfg.time_window_s)
     when = np.maximum(t_path[:, None] + offsets[None, :], 0.0)  # (M, W) seconds from now
-    timed = _near(centers, when, xy, vel, dt_obs, half, cos_h, sin_h, radius + cfg.safety_m)  # (M, O)
+    timed = _near(centers, when, xy, vel, dt_obs, length, width, cos_h, sin_h, radius + cfg.safety_m,
+                  np.ones(len(obstacles), dtype=np.bool_))  # (M, O)
     timed[s < 0.5] = False  # where the vehicle already is
     conflicting = timed.any(axis=0)  # (O,)
     if not conflicting.any():
         return None
-    c = conflicting
     sweep_t = _sweep_times(cfg.horizon_s)  # the same times at every waypoint
-    zone = _near(centers, sweep_t, xy[c], vel[c], dt_obs[c], half[c], cos_h[c], sin_h[c],
-                 radius + cfg.wait_clear_m)  # (M, O')
+    zone = _near(centers, sweep_t, xy, vel, dt_obs, length, width, cos_h, sin_h, radius + cfg.wait_clear_m,
+                 conflicting)  # (M, O')
     first = zone.any(axis=1)
     if first[0]:
         # already inside the zone (out in the oncoming lane when the car came into view):

@@ -258,10 +258,10 @@ def test_an_ego_already_out_in_the_oncoming_lane_drives_on_unless_the_car_is_upo
 
 
 def test_cell_values_are_cell_of_and_the_lookup():
-    """``_cell_values``: 1 / 0 for a point in a set / unset cell, -1 outside, as
+    """``_cell_value``: 1 / 0 for a point in a set / unset cell, -1 outside, as
     ``Grid.cell_of`` with the inside test and the lookup; NaN and inf fall outside."""
     from vehicle_agent.perception import Grid, GridSpec
-    from vehicle_agent.planning import _cell_values
+    from vehicle_agent.planning import _cell_value
 
     rng = np.random.default_rng(3)
     spec = GridSpec(half_extent_m=10.0)
@@ -274,7 +274,7 @@ def test_cell_values_are_cell_of_and_the_lookup():
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
     want = np.full(len(rc), -1)
     want[inside] = mask[rc[inside, 0], rc[inside, 1]]
-    got = _cell_values(mask, xy, grid.i0, grid.j0, spec.cell_m)
+    got = np.array([_cell_value(mask, x, y, grid.i0, grid.j0, spec.cell_m) for x, y in xy.tolist()])
     assert got[:4].tolist() == [-1, -1, -1, -1]
     assert got[4:].tolist() == want.tolist()
     assert {-1, 0, 1} <= set(got.tolist())
@@ -755,3 +755,42 @@ def test_first_conflict_matches_the_previous_kernels(seed, n_obs, speed, curved)
     got = first_conflict(path, t_path, spec, obstacles, 0.0, cfg)
     want = reference_first_conflict(path, t_path, spec, obstacles, 0.0, cfg)
     assert got == want or (got is None and want is None)
+
+
+def numpy_first_along(mask, value, path, s, cum, grid):
+    """What the fast check and ``first_blocked`` did before ``_first_along``: every
+    point's cell value, then the first that is ``value`` (the reference)."""
+    values = np.array([[-1, 0, 1][1 + int(mask[r, c])] if 0 <= r < mask.shape[0] and 0 <= c < mask.shape[1] else -1
+                       for r, c in grid.cell_of(numpy_point_at(path, s, cum)).tolist()], dtype=np.int64).reshape(-1)
+    hit = np.flatnonzero(values == value)
+    return int(hit[0]) if len(hit) else -1
+
+
+def test_the_first_blocked_cell_along_a_path_by_hand():
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import first_blocked
+
+    spec = GridSpec(half_extent_m=5.0)  # 20 x 20 cells of 0.5 m from (0, 0)
+    grid = Grid(spec, 0, 0, np.zeros((20, 20), np.uint8), np.ones((20, 20), bool))
+    blocked = np.zeros((20, 20), dtype=bool)
+    blocked[2, 12] = True  # x 6-6.5 m, y 1-1.5 m
+    path = np.array([[0.0, 1.2], [9.0, 1.2]])
+    assert first_blocked(path, grid, blocked) == 6.0
+    assert first_blocked(path + [0.0, 1.0], grid, blocked) is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 30), st.sampled_from([0, 1]), st.floats(0.0, 0.6))
+def test_first_along_matches_sampling_every_point_then_looking(seed, n_points, value, density):
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _first_along
+
+    rng = np.random.default_rng(seed)
+    spec = GridSpec(half_extent_m=10.0)
+    grid = Grid(spec, -20, -20, np.zeros((40, 40), np.uint8), np.ones((40, 40), bool))
+    mask = rng.random((40, 40)) < density
+    path = np.cumsum(rng.normal(0.0, 3.0, (n_points, 2)), axis=0)  # wanders in and out of the grid
+    cum = numpy_arc_lengths(path)
+    s = np.arange(rng.uniform(0.0, 1.0), cum[-1] + 2.0, 0.5)
+    got = _first_along(mask, value, path, s, cum, grid.i0, grid.j0, spec.cell_m)
+    assert got == numpy_first_along(mask, value, path, s, cum, grid)

@@ -12,8 +12,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-_NO_CUM = np.zeros(0)  # "the caller has no arc lengths": the kernels sum them themselves
-_NO_CUM.setflags(write=False)
+# "the caller has no arc lengths": the kernels sum them themselves. Writable, like the
+# arc lengths callers pass, so that a kernel has one signature for both (numba types a
+# read-only array apart; each signature is one more for the warm-up to load)
+_NO_CUM = np.zeros(0)
 
 
 def arc_lengths(path: np.ndarray) -> np.ndarray:

@@ -32,7 +32,8 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
-from vehicle_agent.paths import _arc_lengths, _clip, _point_at, arc_lengths, point_at, progress_along
+from vehicle_agent.paths import (_arc_lengths, _clip, _interp, _interp_index, _point_at, arc_lengths, point_at,
+                                 progress_along)
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
@@ -420,8 +421,8 @@ class PathPlanner:
         end = self._path_end[1]
         if np.linalg.norm(path[-1] - route_ahead[-1]) > 10.0 or end - s < 15.0:
             return False
-        ahead = point_at(path, s + np.arange(0.0, end - s, 0.5), cum)
-        return bool((_cell_values(passable, ahead, grid.i0, grid.j0, grid.spec.cell_m) != 0).all())
+        ahead = s + np.arange(0.0, end - s, 0.5)
+        return _first_along(passable, 0, path, ahead, cum, grid.i0, grid.j0, grid.spec.cell_m) < 0
 
 
 def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:
@@ -503,20 +504,32 @@ def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:
 
 
 @njit(cache=True)
-def _cell_values(mask, xy, i0, j0, cell):
-    """(P,) int8: 1 where point ``xy[p]`` falls in a set cell of ``mask`` (the grid with
-    cell (0, 0) at lattice (i0, j0)), 0 in an unset one, -1 outside the grid: replaces
-    ``grid.cell_of``, the inside test and the lookup (about ten numpy calls)."""
-    n_r, n_c = mask.shape
-    out = np.full(xy.shape[0], -1, dtype=np.int8)
-    for p in range(xy.shape[0]):
-        fx, fy = np.floor(xy[p, 0] / cell), np.floor(xy[p, 1] / cell)
-        if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
-            continue
-        row, col = np.int64(fy) - j0, np.int64(fx) - i0
-        if 0 <= row < n_r and 0 <= col < n_c:
-            out[p] = 1 if mask[row, col] else 0
-    return out
+def _cell_value(mask, x, y, i0, j0, cell):
+    """1 where the point (x, y) falls in a set cell of ``mask`` (the grid with cell (0, 0)
+    at lattice (i0, j0)), 0 in an unset one, -1 outside the grid: ``grid.cell_of``, the
+    inside test and the lookup (about ten numpy calls on arrays of points)."""
+    fx, fy = np.floor(x / cell), np.floor(y / cell)
+    if not (abs(fx) < 4e18 and abs(fy) < 4e18):  # NaN, inf, out of int64: outside
+        return -1
+    row, col = np.int64(fy) - j0, np.int64(fx) - i0
+    if 0 <= row < mask.shape[0] and 0 <= col < mask.shape[1]:
+        return 1 if mask[row, col] else 0
+    return -1
+
+
+@njit(cache=True)
+def _first_along(mask, value, path, s, cum, i0, j0, cell):
+    """The first k whose point ``s[k]`` along the path (``point_at``) has ``_cell_value``
+    ``value``, or -1: the points one at a time, up to the first found (the fast check and
+    the blocked-cell test sampled every point of the path ahead, then looked)."""
+    xs, ys = np.ascontiguousarray(path[:, 0]), np.ascontiguousarray(path[:, 1])
+    end = cum[cum.shape[0] - 1]
+    for k in range(s.shape[0]):
+        key = _clip(s[k], 0.0, end)
+        j = _interp_index(key, cum) if not np.isnan(key) else 0
+        if _cell_value(mask, _interp(key, j, cum, xs), _interp(key, j, cum, ys), i0, j0, cell) == value:
+            return k
+    return -1
 
 
 def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5,
@@ -527,8 +540,8 @@ def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: flo
         return None
     cum = arc_lengths(path) if s_path is None else s_path
     s = np.arange(0.5, cum[-1], step_m)
-    hit = np.flatnonzero(_cell_values(blocked, point_at(path, s, cum), grid.i0, grid.j0, grid.spec.cell_m) == 1)
-    return float(s[hit[0]]) if len(hit) else None
+    hit = _first_along(blocked, 1, np.asarray(path, dtype=np.float64), s, cum, grid.i0, grid.j0, grid.spec.cell_m)
+    return float(s[hit]) if hit >= 0 else None
 
 
 def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:

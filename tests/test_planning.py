@@ -794,3 +794,71 @@ def test_first_along_matches_sampling_every_point_then_looking(seed, n_points, v
     s = np.arange(rng.uniform(0.0, 1.0), cum[-1] + 2.0, 0.5)
     got = _first_along(mask, value, path, s, cum, grid.i0, grid.j0, spec.cell_m)
     assert got == numpy_first_along(mask, value, path, s, cum, grid)
+
+
+def numpy_smooth_clear(raw, grid, blocked):
+    """``planning._smooth_clear`` as it was in numpy (the reference for ``_uncleared``)."""
+    from vehicle_agent.planning import _smooth
+
+    out = _smooth(raw)
+    keep_raw = np.zeros(len(raw), dtype=bool)
+    n = blocked.shape[0]
+    for _ in range(8):
+        seg = np.diff(out, axis=0)
+        steps = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (grid.spec.cell_m / 4)), 1).astype(np.int64)
+        owner = np.repeat(np.arange(len(seg)), steps)
+        frac = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps, steps)
+        rc = grid.cell_of(out[owner] + frac[:, None] * seg[owner])
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
+        hit = np.zeros(len(rc), dtype=bool)
+        hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
+        bad = np.zeros(len(out), dtype=bool)
+        bad[owner[hit]] = True
+        bad[owner[hit] + 1] = True
+        bad &= ~keep_raw
+        if not bad.any():
+            break
+        keep_raw |= np.convolve(bad, np.ones(5), mode="same") > 0
+        out = np.where(keep_raw[:, None], raw, _smooth(raw))
+    return out
+
+
+def test_a_smoothed_corner_that_cuts_a_block_keeps_the_grid_points_by_hand():
+    """An L-shaped grid path round a blocked cell at its inside corner: the moving
+    average cuts the corner through the cell, so the points round it stay raw."""
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _smooth, _smooth_clear, _uncleared
+
+    spec = GridSpec(half_extent_m=5.0)
+    grid = Grid(spec, 0, 0, np.zeros((20, 20), np.uint8), np.ones((20, 20), bool))
+    raw = np.array([[x, 1.25] for x in np.arange(1.25, 6.0, 0.5)] + [[5.75, y] for y in np.arange(1.75, 6.5, 0.5)])
+    blocked = np.zeros((20, 20), dtype=bool)
+    blocked[3, 10] = True  # x 5-5.5 m, y 1.5-2 m: inside the corner at (5.75, 1.25)
+    assert _uncleared(raw, blocked, 0, 0, 0.5, 0.125).sum() == 0  # the grid path itself is clear
+    assert _uncleared(_smooth(raw), blocked, 0, 0, 0.5, 0.125).any()
+    out = _smooth_clear(raw, grid, blocked)
+    corner = int(np.flatnonzero((raw == [5.75, 1.25]).all(axis=1))[0])
+    np.testing.assert_array_equal(out[corner - 2:corner + 3], raw[corner - 2:corner + 3])
+    assert not _uncleared(out, blocked, 0, 0, 0.5, 0.125).any()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 40), st.floats(0.0, 0.3))
+def test_smooth_clear_matches_the_numpy_version_to_the_bit(seed, n_points, density):
+    from vehicle_agent.perception import Grid, GridSpec
+    from vehicle_agent.planning import _smooth_clear
+
+    rng = np.random.default_rng(seed)
+    spec = GridSpec(half_extent_m=10.0)
+    grid = Grid(spec, -20, -20, np.zeros((40, 40), np.uint8), np.ones((40, 40), bool))
+    blocked = rng.random((40, 40)) < density
+    moves = np.array([[1, 0], [1, 1], [0, 1], [-1, 1], [1, -1]])[rng.integers(0, 5, n_points - 1)]
+    cells = np.cumsum(np.vstack([rng.integers(-15, 15, (1, 2)), moves]), axis=0)  # an 8-connected grid path
+    raw = (cells + 0.5) * spec.cell_m + rng.normal(0.0, 0.1, (n_points, 2)) * (rng.random((n_points, 1)) < 0.3)
+    outcomes = []
+    for smooth_clear in (_smooth_clear, numpy_smooth_clear):
+        try:
+            outcomes.append(smooth_clear(raw, grid, blocked).tobytes())
+        except ValueError as e:  # both: np.convolve's "same" of fewer than 5 points does not broadcast
+            outcomes.append(str(e))
+    assert outcomes[0] == outcomes[1]

@@ -465,27 +465,41 @@ def _smooth_clear(raw: np.ndarray, grid: Grid, blocked: np.ndarray) -> np.ndarra
     quarter cell); near a point where it does not, the raw (snapped) points are kept: a
     moving average cuts the corner round a parked truck into the truck's margin, and the
     speed planner would then stop for a block the path never had."""
-    out = _smooth(raw)
+    smooth = _smooth(raw)
+    out = smooth
     keep_raw = np.zeros(len(raw), dtype=bool)
-    n = blocked.shape[0]
     for _ in range(8):
-        seg = np.diff(out, axis=0)
-        steps = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (grid.spec.cell_m / 4)), 1).astype(np.int64)
-        owner = np.repeat(np.arange(len(seg)), steps)
-        frac = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps, steps)
-        rc = grid.cell_of(out[owner] + frac[:, None] * seg[owner])
-        inside = (rc[:, 0] >= 0) & (rc[:, 0] < n) & (rc[:, 1] >= 0) & (rc[:, 1] < n)
-        hit = np.zeros(len(rc), dtype=bool)
-        hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
-        bad = np.zeros(len(out), dtype=bool)
-        bad[owner[hit]] = True
-        bad[owner[hit] + 1] = True
-        bad &= ~keep_raw
+        bad = _uncleared(out, blocked, grid.i0, grid.j0, grid.spec.cell_m, grid.spec.cell_m / 4) & ~keep_raw
         if not bad.any():
             break
         keep_raw |= np.convolve(bad, np.ones(5), mode="same") > 0  # the window the average mixed in
-        out = np.where(keep_raw[:, None], raw, _smooth(raw))
+        out = np.where(keep_raw[:, None], raw, smooth)
     return out
+
+
+@njit(cache=True)
+def _uncleared(path, blocked, i0, j0, cell, step_m):
+    """(P,) bool: both ends of every segment of ``path`` that crosses a set cell of
+    ``blocked`` (the grid with cell (0, 0) at lattice (i0, j0)), sampled ``step_m`` apart
+    from its start (the segment's length over ``step_m`` points, rounded up, at least
+    one): the dozen numpy passes over every sample that ``_smooth_clear`` made per
+    round, with their float operations, and a segment left at its first blocked sample."""
+    n = blocked.shape[0]
+    bad = np.zeros(path.shape[0], dtype=np.bool_)
+    for i in range(path.shape[0] - 1):
+        sx, sy = path[i + 1, 0] - path[i, 0], path[i + 1, 1] - path[i, 1]
+        steps = np.ceil(np.hypot(sx, sy) / step_m)
+        if np.isnan(steps):
+            raise ValueError("a path point is not finite")  # as np.repeat of the NaN's count
+        steps = np.int64(max(steps, 1.0))
+        for j in range(steps):
+            f = j / steps
+            row = np.int64(np.floor((path[i, 1] + f * sy) / cell)) - j0
+            col = np.int64(np.floor((path[i, 0] + f * sx) / cell)) - i0
+            if 0 <= row < n and 0 <= col < n and blocked[row, col]:
+                bad[i] = bad[i + 1] = True
+                break
+    return bad
 
 
 def _smooth(path: np.ndarray, window: int = 5) -> np.ndarray:

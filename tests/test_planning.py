@@ -862,3 +862,33 @@ def test_smooth_clear_matches_the_numpy_version_to_the_bit(seed, n_points, densi
         except ValueError as e:  # both: np.convolve's "same" of fewer than 5 points does not broadcast
             outcomes.append(str(e))
     assert outcomes[0] == outcomes[1]
+
+
+def numpy_arrival_times(s, v0, v_cruise, accel):
+    """``planning.arrival_times`` as it was in numpy (the reference)."""
+    v_cruise = max(v_cruise, 1e-3)
+    v0 = min(v0, v_cruise)
+    t_acc = (v_cruise - v0) / accel
+    s_acc = (v0 + v_cruise) / 2 * t_acc
+    return np.where(s <= s_acc, (-v0 + np.sqrt(v0 * v0 + 2 * accel * np.maximum(s, 0.0))) / accel,
+                    t_acc + (s - s_acc) / v_cruise)
+
+
+def test_arrival_times_by_hand():
+    from vehicle_agent.planning import arrival_times
+
+    # from rest at 2 m/s^2 to 10 m/s: 25 m in 5 s, then 10 m/s; already at 10 m/s: s / 10
+    np.testing.assert_allclose(arrival_times(np.array([0.0, 1.0, 25.0, 45.0]), 0.0, 10.0, 2.0), [0, 1, 5, 7])
+    np.testing.assert_allclose(arrival_times(np.array([0.0, 30.0]), 12.0, 10.0, 2.0), [0.0, 3.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(st.floats(-5.0, 500.0), st.sampled_from([0.0, -0.0, np.nan])), max_size=60),
+       st.floats(0.0, 25.0), st.floats(-1.0, 25.0), st.sampled_from([2.0, 0.5, 4.0]))
+def test_arrival_times_match_the_numpy_version_to_the_bit(s, v0, v_cruise, accel):
+    from vehicle_agent.planning import arrival_times
+
+    s = np.array(s, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        want = numpy_arrival_times(s, v0, v_cruise, accel)
+    assert arrival_times(s, v0, v_cruise, accel).tobytes() == want.tobytes()

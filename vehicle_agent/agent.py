@@ -111,7 +111,7 @@ class Agent:
             _mark(moving, grid, np.concatenate(cells) * grid.spec.cell_m + grid.spec.cell_m / 2)
         own = Obstacles(np.array(xy, dtype=np.float64).reshape(-1, 2), np.array(vel, dtype=np.float64).reshape(-1, 2),
                         np.array(length, dtype=np.float64), np.array(width, dtype=np.float64),
-                        np.full(len(xy), view.t_sim_s), np.array(heading, dtype=np.float64))
+                        np.full(len(xy), view.t_sim_s), np.array(heading, dtype=np.float64)) if xy else _NO_OBSTACLES
         shared = self.dataplane.shared_batch
         if not len(shared):
             return own, moving
@@ -127,6 +127,17 @@ class Agent:
         if not len(own):
             return received, moving
         return Obstacles(*(np.concatenate([a, b]) for a, b in zip(own.columns(), received.columns()))), moving
+
+
+def _no_obstacles() -> Obstacles:
+    """No obstacle, read-only arrays (one for every tick a vehicle tracks no mover)."""
+    out = Obstacles(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    for column in out.columns():
+        column.setflags(write=False)
+    return out
+
+
+_NO_OBSTACLES = _no_obstacles()
 
 
 class timed:

@@ -564,9 +564,23 @@ def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np
     v0 = min(v0, v_cruise)
     t_acc = (v_cruise - v0) / accel
     s_acc = (v0 + v_cruise) / 2 * t_acc
-    t = np.where(s <= s_acc, (-v0 + np.sqrt(v0 * v0 + 2 * accel * np.maximum(s, 0.0))) / accel,
-                 t_acc + (s - s_acc) / v_cruise)
-    return t
+    return _arrival_times(np.asarray(s, dtype=np.float64).reshape(-1), v0, v_cruise, accel, t_acc,
+                          s_acc).reshape(np.shape(s))
+
+
+@njit(cache=True)
+def _arrival_times(s, v0, v_cruise, accel, t_acc, s_acc):
+    """``arrival_times``' two branches, the one each distance takes only: the numpy
+    version's expressions (both branches for every point, then ``np.where``) in one pass."""
+    out = np.empty(s.shape[0])
+    for k in range(s.shape[0]):
+        x = s[k]
+        if x <= s_acc:
+            m = x if (x >= 0.0 or np.isnan(x)) else 0.0  # np.maximum(x, 0.0)
+            out[k] = (-v0 + np.sqrt(v0 * v0 + 2 * accel * m)) / accel
+        else:
+            out[k] = t_acc + (x - s_acc) / v_cruise
+    return out
 
 
 def _body_centers(path: np.ndarray, spec: VehicleSpec, full: np.ndarray) -> tuple[np.ndarray, float]:

@@ -118,28 +118,52 @@ class Plan:
 
 
 @njit(cache=True)
-def _inflate(obst, radius):
-    """Cells within ``radius`` cells (Euclidean) of an obstacle cell: the disc painted
-    round each one a row run at a time (the run's half width at row offset dy is the
-    largest w with w^2 + dy^2 <= radius^2), not a test per cell of its square."""
-    ny, nx = obst.shape
-    out = np.zeros_like(obst)
+def _disc_half_widths(radius):
+    """(2 radius + 1,): the half width of the disc's row run at each row offset dy, the
+    largest w with w^2 + dy^2 <= radius^2."""
     half = np.empty(2 * radius + 1, dtype=np.int64)
     for dy in range(-radius, radius + 1):
         w = 0
         while (w + 1) * (w + 1) + dy * dy <= radius * radius:
             w += 1
         half[dy + radius] = w
+    return half
+
+
+@njit(cache=True)
+def _paint_disc(out, y, x, half, radius):
+    """Set the cells of ``out`` within ``radius`` cells (Euclidean) of cell (y, x)."""
+    ny, nx = out.shape
+    for dy in range(-radius, radius + 1):
+        yy = y + dy
+        if 0 <= yy < ny:
+            w = half[dy + radius]
+            out[yy, max(x - w, 0):min(x + w + 1, nx)] = True
+
+
+@njit(cache=True)
+def _inflate(obst, radius):
+    """Cells within ``radius`` cells (Euclidean) of an obstacle cell: the disc painted
+    round each one a row run at a time, not a test per cell of its square."""
+    ny, nx = obst.shape
+    out = np.zeros_like(obst)
+    half = _disc_half_widths(radius)
     for y in range(ny):
         for x in range(nx):
-            if not obst[y, x]:
-                continue
-            for dy in range(-radius, radius + 1):
-                yy = y + dy
-                if 0 <= yy < ny:
-                    w = half[dy + radius]
-                    out[yy, max(x - w, 0):min(x + w + 1, nx)] = True
+            if obst[y, x]:
+                _paint_disc(out, y, x, half, radius)
     return out
+
+
+@njit(cache=True)
+def _passable(blocked, drivable, corridor):
+    """``drivable & ~blocked & corridor``."""
+    passable = np.empty_like(blocked)
+    ny, nx = blocked.shape
+    for y in range(ny):
+        for x in range(nx):
+            passable[y, x] = drivable[y, x] & ~blocked[y, x] & corridor[y, x]
+    return passable
 
 
 @njit(cache=True)
@@ -148,25 +172,22 @@ def _blocked_passable(static, drivable, corridor, radius):
     ``drivable & ~blocked & corridor``, in one kernel: replaces the inflation and three
     whole-grid numpy passes (and their temporaries) of every tick."""
     blocked = _inflate(static, radius)
-    passable = np.empty_like(blocked)
-    ny, nx = blocked.shape
-    for y in range(ny):
-        for x in range(nx):
-            passable[y, x] = drivable[y, x] and not blocked[y, x] and corridor[y, x]
-    return blocked, passable
+    return blocked, _passable(blocked, drivable, corridor)
 
 
 @njit(cache=True)
 def _static_blocked_passable(state, drivable, moving, corridor, radius, above):
     """``_blocked_passable`` of the static obstacles, ``(state == above) & drivable &
-    ~moving``, taken in a pass of its own: not three whole-grid numpy passes and their
-    temporaries every tick."""
+    ~moving``, tested cell by cell as the discs are painted: no mask of them, and not
+    the three whole-grid numpy passes and their temporaries that made it every tick."""
     ny, nx = state.shape
-    static = np.empty((ny, nx), dtype=np.bool_)
+    blocked = np.zeros((ny, nx), dtype=np.bool_)
+    half = _disc_half_widths(radius)
     for y in range(ny):
         for x in range(nx):
-            static[y, x] = state[y, x] == above and drivable[y, x] and not moving[y, x]
-    return _blocked_passable(static, drivable, corridor, radius)
+            if state[y, x] == above and drivable[y, x] and not moving[y, x]:
+                _paint_disc(blocked, y, x, half, radius)
+    return blocked, _passable(blocked, drivable, corridor)
 
 
 _DY = np.array([0, 1, 1, 1, 0, -1, -1, -1])

@@ -594,14 +594,8 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
                 q += 1
                 if not (mark and z > clear_m):  # _fuse_points' step, into the kept object's row n_kept
                     continue
-                if inv > 0.0:
-                    col, row = np.floor(x * inv) - i0, np.floor(y * inv) - j0
-                else:
-                    col, row = np.floor(x / cell_m) - i0, np.floor(y / cell_m) - j0
-                if not (0 <= row < n and 0 <= col < n):  # also refuses NaN
-                    continue
-                r, c = int(row), int(col)
-                if r == last_r and c == last_c:
+                r, c = _cell_of(x, y, i0, j0, cell_m, inv, n)
+                if r < 0 or (r == last_r and c == last_c):
                     continue
                 last_r, last_c = r, c
                 if state[r, c] == ABOVE:
@@ -612,6 +606,19 @@ def _shared_now(pool, starts, counts, bounds, shift, fresh, px, py, cos_yaw, sin
             n_kept += 1
         kept[k], kept_counts[k], merged[k] = keep, count - hits, back
     return out[:q], kept, kept_counts, merged
+
+
+@njit(cache=True)
+def _cell_of(x, y, i0, j0, cell_m, inv, n):
+    """The cell (row, col) of the n x n grid a point at (x, y) falls in, or (-1, -1)
+    outside it (NaN included); ``inv``: ``exact_inverse(cell_m)``, used when positive."""
+    if inv > 0.0:
+        col, row = np.floor(x * inv) - i0, np.floor(y * inv) - j0
+    else:
+        col, row = np.floor(x / cell_m) - i0, np.floor(y / cell_m) - j0
+    if not (0 <= row < n and 0 <= col < n):  # also refuses NaN
+        return -1, -1
+    return int(row), int(col)
 
 
 @njit(cache=True)
@@ -678,16 +685,8 @@ def _fuse_points(pts, counts, i0, j0, cell_m, inv, clear_m, own, state, received
             p += 1
             if not z > clear_m:
                 continue
-            if inv > 0.0:
-                col = np.floor(x * inv) - i0
-                row = np.floor(y * inv) - j0
-            else:
-                col = np.floor(x / cell_m) - i0
-                row = np.floor(y / cell_m) - j0
-            if not (0 <= row < n and 0 <= col < n):  # also refuses NaN
-                continue
-            r, c = int(row), int(col)
-            if r == last_r and c == last_c:
+            r, c = _cell_of(x, y, i0, j0, cell_m, inv, n)
+            if r < 0 or (r == last_r and c == last_c):
                 continue
             last_r, last_c = r, c
             if own[r, c] == ABOVE:

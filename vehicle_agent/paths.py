@@ -71,18 +71,27 @@ def _clip(v, lo, hi):
 
 
 @njit(cache=True)
+def _segment_foot(path, k, x, y):
+    """The foot of (x, y) on segment k of ``path``: its parameter t in [0, 1], the
+    segment's squared length (at least 1e-12, as ``np.maximum(., 1e-12)``; NaN stays),
+    and the foot's x and y."""
+    ax, ay = path[k, 0], path[k, 1]
+    abx, aby = path[k + 1, 0] - ax, path[k + 1, 1] - ay
+    len2 = abx * abx + aby * aby
+    if len2 < 1e-12:
+        len2 = 1e-12
+    t = _clip(((x - ax) * abx + (y - ay) * aby) / len2, 0.0, 1.0)
+    return t, len2, ax + t * abx, ay + t * aby
+
+
+@njit(cache=True)
 def _progress_along(path, x, y, cum):
     """The numpy ``progress_along``: each segment's foot of (x, y), the first nearest (a
     NaN distance wins, as ``np.argmin``), its arc length; ``cum`` empty: summed here."""
     best, best_d, best_t, best_len2 = 0, np.inf, 0.0, 0.0
     for k in range(path.shape[0] - 1):
-        ax, ay = path[k, 0], path[k, 1]
-        abx, aby = path[k + 1, 0] - ax, path[k + 1, 1] - ay
-        len2 = abx * abx + aby * aby
-        if len2 < 1e-12:  # np.maximum(., 1e-12): NaN stays
-            len2 = 1e-12
-        t = _clip(((x - ax) * abx + (y - ay) * aby) / len2, 0.0, 1.0)
-        px, py = ax + t * abx - x, ay + t * aby - y
+        t, len2, fx, fy = _segment_foot(path, k, x, y)
+        px, py = fx - x, fy - y
         d = np.sqrt(px * px + py * py)
         if k == 0 or d < best_d or (np.isnan(d) and not np.isnan(best_d)):
             best, best_d, best_t, best_len2 = k, d, t, len2

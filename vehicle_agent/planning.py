@@ -32,8 +32,8 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Mission, Pose, VehicleSpec
-from vehicle_agent.paths import (_arc_lengths, _clip, _interp, _interp_index, _point_at, arc_lengths, point_at,
-                                 progress_along)
+from vehicle_agent.paths import (_arc_lengths, _clip, _interp, _interp_index, _point_at, _segment_foot, arc_lengths,
+                                 point_at, progress_along)
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
@@ -463,13 +463,7 @@ def _snapped(path, route, within_m):
         x, y = path[p, 0], path[p, 1]
         best_d, best_x, best_y = np.inf, 0.0, 0.0
         for k in range(route.shape[0] - 1):
-            ax, ay = route[k, 0], route[k, 1]
-            abx, aby = route[k + 1, 0] - ax, route[k + 1, 1] - ay
-            len2 = abx * abx + aby * aby
-            if len2 < 1e-12:  # np.maximum(., 1e-12): NaN stays
-                len2 = 1e-12
-            t = _clip(((x - ax) * abx + (y - ay) * aby) / len2, 0.0, 1.0)
-            fx, fy = ax + t * abx, ay + t * aby
+            _, _, fx, fy = _segment_foot(route, k, x, y)
             dx, dy = fx - x, fy - y
             d = np.sqrt(dx * dx + dy * dy)
             if k == 0 or d < best_d or (np.isnan(d) and not np.isnan(best_d)):

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -42,6 +43,7 @@ class Cluster:
     def __init__(self, tmp_path: Path) -> None:
         self.tmp = tmp_path
         self.procs: list[subprocess.Popen] = []
+        self.names: list[str] = []  # the scheduler's first
         self.address = ""
 
     def _start(self, name: str, args: list[str], ready: str, env: dict[str, str]) -> subprocess.Popen:
@@ -51,6 +53,7 @@ class Cluster:
                                  stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
                                  env={**os.environ, **env})
         self.procs.append(p)
+        self.names.append(name)
         wait_until(lambda: ready in log.read_text() or p.poll() is not None, f"{name} ready", timeout_s=120)
         assert p.poll() is None, log.read_text()
         return p
@@ -71,15 +74,23 @@ class Cluster:
         return p, f"tcp://127.0.0.1:{port}"
 
     def stop(self) -> None:
-        for p in reversed(self.procs):  # workers first: SIGTERM closes a worker; its runs get SIGINT from the kernel
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        """The workers first, each waited for while the scheduler still answers their
+        goodbye (SIGTERM closes a worker; its runs get SIGINT from the kernel), then the
+        scheduler. A process that outlasts the safety net is killed and named in a
+        warning with its log's tail."""
+        procs = list(zip(self.names, self.procs))
+        for batch in (procs[1:], procs[:1]):
+            for _, p in batch:
+                if p.poll() is None:
+                    os.killpg(p.pid, signal.SIGTERM)
+            for name, p in batch:
+                try:
+                    p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
+                    tail = (self.tmp / f"{name}.log").read_text(errors="replace")[-2000:]
+                    warnings.warn(f"dask {name} outlasted 30 s after SIGTERM and was killed; its log ends:\n{tail}")
 
 
 @pytest.fixture

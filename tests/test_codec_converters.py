@@ -75,7 +75,10 @@ def _ref_record(cls: type):
             except codec._FieldError as err:
                 err.path.insert(0, f".{name}")
                 raise
-        return cls(*args)
+        try:
+            return cls(*args)
+        except ValueError as exc:  # a record's own check (__post_init__): named by where it sits, as codec words it
+            raise codec._FieldError(str(exc)) from None
 
     _REF[cls] = convert
     convs.extend(_ref_converter(hint) for _, hint in codec._hints(cls))

@@ -6,7 +6,6 @@ for everything AutoCast carries every object, so never less than Agnostic."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -134,8 +134,6 @@ def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
 def test_malformed_messages_are_counted_and_dropped(procs, hub, tap_on):
     """A stand-in for agent 0 sends garbage on its command key before its command for
     tick 2: the world cannot finish before it has them, drops and counts each one."""
-    from protocol.codec import encode
-
     w = world(procs, hub, "--vehicles", "2", "--duration", "3")
     agent(procs, hub, 1)
     tap = tap_on()

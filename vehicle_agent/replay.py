@@ -141,7 +141,7 @@ def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None, credent
     the vehicle's ``credentials`` (``<run>/credentials/agent<vid>.v2x.json``): Ed25519
     signatures are deterministic, so the replay signs what the run signed."""
     from protocol.security import Credentials
-    from vehicle_agent.__main__ import SCHEDULER_OF, Pipeline
+    from vehicle_agent.__main__ import Pipeline
     from vehicle_agent.guard import Guard
     from vehicle_agent.warmup import warm_up
 

@@ -32,7 +32,7 @@ import shutil
 import struct
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -46,6 +46,7 @@ from protocol.session import DropCounter, deliver, typed_handler
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+Buffer = bytes | memoryview  # a part of a payload (``ShmPublisher.put_parts``)
 HEADER = struct.Struct("<QQ")  # tick + 1 (0: being written, or never), payload size in bytes
 TMPFS = Path("/dev/shm")
 DIR_PREFIX = "autocast-"
@@ -57,6 +58,11 @@ ORDERED_STORES = ("x86_64", "AMD64", "i386", "i686")  # CPUs that keep stores (a
 
 class ShmMiss(ValueError):
     """The payload a notice names is not (or no longer) in shared memory."""
+
+
+def _nbytes(part: Buffer) -> int:
+    """The size in bytes of a buffer (a ``bytes``, or a memoryview of any format)."""
+    return part.nbytes if isinstance(part, memoryview) else len(part)
 
 
 def _name(key: str, slot: int) -> str:
@@ -82,18 +88,28 @@ class ShmWriter:
         self.fallbacks = 0  # payloads that did not go into shared memory
 
     def write(self, tick: int, t_sim_s: float, payload: bytes) -> InShm | None:
-        need = HEADER.size + len(payload)
+        return self.write_parts(tick, t_sim_s, (payload,))
+
+    def write_parts(self, tick: int, t_sim_s: float, parts: Sequence[Buffer]) -> InShm | None:
+        """``write`` of the payload that is ``parts`` (buffers of bytes) one after the
+        other, each copied straight into the file: the caller need not join them."""
+        size = sum(_nbytes(part) for part in parts)
+        need = HEADER.size + size
         mm = self._room(tick % 2, need)
         if mm is None:
             self.fallbacks += 1
             if self.fallbacks == 1:
                 log.warning("%s: a payload of %d bytes does not go through shared memory (%s); it goes over Zenoh",
-                            self.key, len(payload), "another writer's files" if self._foreign else "no room")
+                            self.key, size, "another writer's files" if self._foreign else "no room")
             return None
-        HEADER.pack_into(mm, 0, 0, len(payload))
-        mm[HEADER.size:need] = payload
-        HEADER.pack_into(mm, 0, tick + 1, len(payload))
-        return InShm(tick, t_sim_s, len(payload))
+        HEADER.pack_into(mm, 0, 0, size)
+        at = HEADER.size
+        for part in parts:
+            n = _nbytes(part)
+            mm[at:at + n] = part
+            at += n
+        HEADER.pack_into(mm, 0, tick + 1, size)
+        return InShm(tick, t_sim_s, size)
 
     def _room(self, i: int, need: int) -> mmap.mmap | None:
         mm = self._maps[i]
@@ -215,6 +231,19 @@ class ShmPublisher:
         self._twin.put(payload if notice is None else encode(notice))
         if self._pub.matching_status.matching:
             self._pub.put(payload)
+
+    def put_parts(self, tick: int, t_sim_s: float, parts: Sequence[Buffer]) -> None:
+        """``put`` of the payload that is ``parts`` one after the other (a message's
+        encoded head and the raw bytes of its last array, say): into shared memory
+        without joining them first; joined only for what goes over Zenoh."""
+        if self._writer is None:
+            self._pub.put(b"".join(parts))
+            return
+        notice = self._writer.write_parts(tick, t_sim_s, parts)
+        payload = b"".join(parts) if notice is None else None
+        self._twin.put(payload if notice is None else encode(notice))
+        if self._pub.matching_status.matching:
+            self._pub.put(b"".join(parts) if payload is None else payload)
 
     def undeclare(self) -> None:
         self._pub.undeclare()

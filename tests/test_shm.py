@@ -234,3 +234,54 @@ def test_without_a_directory_the_publisher_is_plain_zenoh(sessions):
     assert inbox.wait_for(1) == [(key, Tick(0, 0.0, [1], []))]
     sub.undeclare()
     pub.undeclare()
+
+
+def test_a_payload_in_parts_reads_back_as_the_parts_joined(tmp_path, monkeypatch):
+    import numpy as np
+    writer, reader = ShmWriter(tmp_path, KEY), ShmReader(tmp_path, KEY)
+    arr = np.arange(3000, dtype=np.uint16).reshape(100, 30)
+    for tick, parts in enumerate([(b"head", memoryview(arr).cast("B")), (b"", b"x" * 7, b""), (b"only",), ()]):
+        joined = b"".join(parts)
+        notice = writer.write_parts(tick, tick * 0.1, parts)
+        assert notice == InShm(tick, tick * 0.1, len(joined))
+        assert reader.read(notice) == joined
+    monkeypatch.setattr(os, "posix_fallocate", lambda *_: (_ for _ in ()).throw(OSError(28, "full")))
+    assert writer.write_parts(4, 0.4, (b"y" * 100_000, memoryview(arr).cast("B"))) is None  # no room: the caller sends it
+    assert writer.fallbacks == 1
+    writer.close()
+
+
+def test_put_parts_sends_what_put_of_the_joined_parts_sends(sessions, tmp_path, monkeypatch):
+    _, a, b = sessions
+    key = keys.world_tick("t")
+    pub = ShmPublisher(a, key, tmp_path)
+    drops, inbox, plain = DropCounter(), Inbox(), Inbox()
+    sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops)
+    _wait_matching(pub._twin, True)
+    ticks = [Tick(t, t * 0.1, list(range(t * 1000)), []) for t in range(3)]
+
+    def parts(tick):
+        raw = encode(tick)
+        return raw[:5], memoryview(bytearray(raw[5:]))
+
+    pub.put_parts(0, 0.0, parts(ticks[0]))  # shared memory only
+    assert inbox.wait_for(1) == [(key, ticks[0])]
+    zsub = b.declare_subscriber(key, typed_handler(Tick, plain.put, drops))
+    _wait_matching(pub._pub, True)
+    pub.put_parts(1, 0.1, parts(ticks[1]))  # and, joined, on the key for its subscriber
+    assert plain.wait_for(1) == [(key, ticks[1])]
+    monkeypatch.setattr(os, "posix_fallocate", lambda *_: (_ for _ in ()).throw(OSError(28, "full")))
+    pub.put_parts(2, 0.2, parts(ticks[2]))  # no room: joined, on the twin and on the key
+    assert inbox.wait_for(3)[1:] == [(key, ticks[1]), (key, ticks[2])]
+    assert plain.wait_for(2)[1] == (key, ticks[2])
+    assert drops.total == 0
+    zsub.undeclare()
+    sub.undeclare()
+    pub.undeclare()
+    plain_pub, plain_in = ShmPublisher(a, key, None), Inbox()  # without a directory: joined, plain Zenoh
+    plain_sub = shm.subscribe(b, key, None, Tick, plain_in.put, drops)
+    _wait_matching(plain_pub._pub, True)
+    plain_pub.put_parts(0, 0.0, parts(ticks[1]))
+    assert plain_in.wait_for(1) == [(key, ticks[1])]
+    plain_sub.undeclare()
+    plain_pub.undeclare()

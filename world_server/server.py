@@ -41,6 +41,7 @@ from protocol.security import Verifier
 from protocol.session import DropCounter, reliable_publisher, typed_handler
 from protocol.shm import ShmPublisher
 from world_server.sim import Simulation
+from world_server.wire import encode_parts
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,11 @@ class WorldServer:
         self._cv = threading.Condition()
         self._tokens: set[int] = set()
         self._cmds: dict[int, Command] = {}  # latest command per vid
+        # lock-step: the tick whose commands ``_collect_lockstep`` waits for, and the live
+        # vehicles it has not had one from when it last looked; a command wakes it only
+        # when it is the last of these (one wake-up a tick, not one per command)
+        self._waiting_tick = -1
+        self._waiting: set[int] = set()
         self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
         self._report_tick = -1  # the newest report accepted: with a verifier, an older one is a replay
         # the ego agent reports its fused view: lock-step waits for it. Told so up front
@@ -168,6 +174,10 @@ class WorldServer:
                 return
             if prev is None or cmd.tick >= prev.tick:
                 self._cmds[cmd.vid] = cmd
+            if cmd.tick >= self._waiting_tick and cmd.vid in self._waiting:
+                self._waiting.discard(cmd.vid)
+                if self._waiting:
+                    return  # the collector waits for others' too: no use waking it
             self._cv.notify_all()
 
     def _on_report(self, key: str, report: AgentReport) -> None:
@@ -242,8 +252,8 @@ class WorldServer:
         self._tick_pub.put(encode(Tick(k, sim.t_sim_s, live, sim.lights())))
         self._truth_pub.put(encode(sim.truth()))
         for v in sim.sense_each(live):  # each scan goes out as soon as it is cast: its agent starts at once
-            self._scan_pubs[v.vid].put(k, sim.t_sim_s, encode(Scan(k, sim.t_sim_s, v.vid, v.pose, v.speed_mps,
-                                                                   v.range_cm)))
+            self._scan_pubs[v.vid].put_parts(k, sim.t_sim_s, encode_parts(Scan(k, sim.t_sim_s, v.vid, v.pose,
+                                                                                v.speed_mps, v.range_cm)))
         phases.mark("world.scans_sent", k)
         if self.realtime:
             commands = self._collect_realtime(t0 + (k + 1) * sim.decision_interval_s)
@@ -262,6 +272,7 @@ class WorldServer:
         with self._cv:
             while not self._stopping.is_set():
                 waiting = [v for v in self._live if self._cmds.get(v) is None or self._cmds[v].tick < k]
+                self._waiting_tick, self._waiting = k, set(waiting)
                 ego = self.sim.scenario.ego.vid
                 report_due = self._ego_reports and ego in self._live and k not in self._reports
                 if not waiting and not report_due:
@@ -272,6 +283,7 @@ class WorldServer:
                         self._mark_dead(vid, f"no command for tick {k} within {self.agent_timeout_s:.1f} s")
                     break
                 self._cv.wait(left)
+            self._waiting_tick, self._waiting = -1, set()
             return {v: (self._cmds[v].accel_mps2, self._cmds[v].steer_rad) for v in self._live if v in self._cmds}
 
     def _collect_realtime(self, tick_end: float) -> dict[int, tuple[float, float]]:

@@ -80,3 +80,64 @@ def test_the_bodies_stay_where_the_vehicles_are():
     for body, x, y, yaw in zip(phys.bodies, phys.x, phys.y, phys.yaw):
         assert tuple(body.position) == (x, y) and body.angle == yaw
         assert tuple(body.velocity) == (0.0, 0.0) and body.angular_velocity == 0.0
+
+
+def test_command_many_clips_by_hand():
+    phys = Physics([CAR, TRUCK, CAR], np.zeros((3, 3)), np.zeros(3))
+    phys.command_many(np.array([2, 0]), np.array([100.0, -100.0]), np.array([-3.0, 0.1]))
+    assert phys.accel_cmd.tolist() == [-CAR.max_brake_mps2, 0.0, CAR.max_accel_mps2]
+    assert phys.steer_cmd.tolist() == [0.1, 0.0, -CAR.max_steer_rad]
+
+
+def _one_by_one(phys: Physics, ids, accel, steer) -> None:  # what Simulation.step did before command_many
+    for i, a, s in zip(ids, accel, steer):
+        phys.command(int(i), a, s)
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_cmd = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64), st.sampled_from([0.0, -0.0]),
+                 st.sampled_from([CAR.max_accel_mps2, -CAR.max_brake_mps2, TRUCK.max_steer_rad, -CAR.max_steer_rad]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), n=st.integers(1, 6))
+def test_command_many_sets_what_command_one_by_one_sets(data, n):
+    specs = [data.draw(st.sampled_from([CAR, TRUCK])) for _ in range(n)]
+    ids = np.array(data.draw(st.permutations(range(n)))[:data.draw(st.integers(0, n))], dtype=np.int64)
+    accel = np.array([data.draw(_cmd) for _ in ids], dtype=np.float64)
+    steer = np.array([data.draw(_cmd) for _ in ids], dtype=np.float64)
+    a, b = (Physics(specs, np.zeros((n, 3)), np.zeros(n)) for _ in range(2))
+    _one_by_one(a, ids, accel.tolist(), steer.tolist())  # Python floats, as commands arrive
+    b.command_many(ids, accel, steer)
+    assert a.accel_cmd.view(np.int64).tolist() == b.accel_cmd.view(np.int64).tolist()  # to the bit (NaN, -0.0)
+    assert a.steer_cmd.view(np.int64).tolist() == b.steer_cmd.view(np.int64).tolist()
+
+
+def _body_state(phys: Physics) -> list:
+    return [(b.position.x, b.position.y, b.angle, tuple(b.rotation_vector), *[tuple(s.bb) for s in b.shapes])
+            for b in phys.bodies]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 12))
+def test_bodies_put_in_one_batch_are_where_one_by_one_puts_them_and_touch_alike(seed, n):
+    """``_sync_bodies`` puts every body through pymunk.batch; the reference puts only the
+    moved ones one by one (as it did before): the same bodies, transforms, boxes and contacts."""
+    rng = np.random.default_rng(seed)
+    specs = [CAR if rng.random() < 0.7 else TRUCK for _ in range(n)]
+    poses = np.column_stack([rng.uniform(-15, 15, n), rng.uniform(-15, 15, n), rng.uniform(-np.pi, np.pi, n)])
+    speeds = rng.uniform(0, 12, n) * (rng.random(n) < 0.8)  # some parked
+    fast, slow = Physics(specs, poses, speeds), Physics(specs, poses, speeds)
+    assert fast._batched
+    slow._batched = False
+    for _ in range(30):
+        accel, steer = rng.uniform(-8, 3, n), rng.uniform(-0.6, 0.6, n)
+        for phys in (fast, slow):
+            phys.command_many(np.arange(n), accel, steer)
+            for _ in range(10):
+                phys.step(0.01)
+        assert _body_state(fast) == _body_state(slow)
+    assert fast.contacts == slow.contacts
+    assert fast.x.tolist() == slow.x.tolist() and fast.v.tolist() == slow.v.tolist()

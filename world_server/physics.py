@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pymunk
+import pymunk.batch
 
 from protocol.messages import VehicleSpec
 
@@ -64,6 +65,12 @@ class Physics:
             self.bodies.append(body)
         self.space.on_collision(_VEHICLE, _VEHICLE, begin=self._on_begin, separate=self._on_separate)
         self._synced_x = self._synced_y = self._synced_yaw = np.full(n, np.nan)  # where the bodies are: nowhere yet
+        # the bodies are put in one call (pymunk.batch) when the space lists them in vid order, as it does
+        self._poses_buf = np.empty((n, 3))  # x, y, angle per body, the batch's layout
+        self._batch = pymunk.batch.Buffer()
+        ids = pymunk.batch.Buffer()
+        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, ids)
+        self._batched = np.frombuffer(ids.int_buf(), dtype=np.int64).tolist() == [b.id for b in self.bodies]
         self._sync_bodies()
         self.space.step(1e-6)  # register initial overlaps (spawned touching = a bad scenario)
 
@@ -85,6 +92,13 @@ class Physics:
         """Put the pymunk bodies where the vehicles are. Only the ones that moved: pymunk
         leaves a body where it was put, at zero velocity (sensor shapes take no impulses,
         and the space has no gravity or forces)."""
+        if self._batched:  # every body, moved or not: putting one where it is changes nothing
+            buf = self._poses_buf
+            buf[:, 0], buf[:, 1], buf[:, 2] = self.x, self.y, self.yaw
+            self._batch.set_float_buf(buf.reshape(-1))
+            pymunk.batch.set_space_bodies(self.space, pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.ANGLE,
+                                          self._batch)
+            return
         moved = (self.x != self._synced_x) | (self.y != self._synced_y) | (self.yaw != self._synced_yaw)
         for i in np.flatnonzero(moved):
             body = self.bodies[i]
@@ -96,6 +110,12 @@ class Physics:
         """Set vehicle ``i``'s actuation, clipped to its limits."""
         self.accel_cmd[i] = np.clip(accel_mps2, -self.max_brake[i], self.max_accel[i])
         self.steer_cmd[i] = np.clip(steer_rad, -self.max_steer[i], self.max_steer[i])
+
+    def command_many(self, ids: np.ndarray, accel_mps2: np.ndarray, steer_rad: np.ndarray) -> None:
+        """``command(i, accel_mps2[j], steer_rad[j])`` for each ``i = ids[j]`` (distinct), in one
+        clip per array: the same elementwise min and max, for the same values."""
+        self.accel_cmd[ids] = np.clip(accel_mps2, -self.max_brake[ids], self.max_accel[ids])
+        self.steer_cmd[ids] = np.clip(steer_rad, -self.max_steer[ids], self.max_steer[ids])
 
     def step(self, dt_s: float) -> None:
         """Advance all vehicles by ``dt_s`` and collect contacts."""

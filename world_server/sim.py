@@ -58,6 +58,7 @@ class Simulation:
         self._collider_points: np.ndarray | None = None  # its LiDAR's points this tick, for its driver
         self._collider_in_ego_view = 0
         self._passive = self.scenario.passive()
+        self._connected = np.array(self.connected_vids, dtype=np.int64)
 
     @property
     def t_sim_s(self) -> float:
@@ -122,11 +123,15 @@ class Simulation:
         view for this tick (world points), for the judge's visibility metrics.
         """
         phys = self.physics
-        for vid in self.connected_vids:
+        ids = self._connected
+        accel = np.empty(len(ids))
+        steer = np.empty(len(ids))
+        for j, vid in enumerate(ids.tolist()):
             if vid in commands:
-                phys.command(vid, *commands[vid])
+                accel[j], steer[j] = commands[vid]
             else:
-                phys.command(vid, -phys.max_brake[vid], 0.0)
+                accel[j], steer[j] = -phys.max_brake[vid], 0.0
+        phys.command_many(ids, accel, steer)
         self._drive_passive()
         fused = None if ego_fused_xy is None else self.judge.collider_points_in(phys, ego_fused_xy)
         self.judge.observe_tick(phys, self._collider_in_ego_view, fused)

@@ -56,6 +56,7 @@ class Judge:
     def __post_init__(self) -> None:
         sc = self.scenario
         self.ego_i, self.col_i = sc.ego.vid, sc.collider.vid
+        self._ego, self._col = sc.ego, sc.collider  # not looked up by role at every tick
         self._ego_conflict_s = project_s(sc.ego.route, sc.conflict_xy)
         self._col_conflict_s = project_s(sc.collider.route, sc.conflict_xy)
 
@@ -133,7 +134,7 @@ class Judge:
             self.t_end_s = t
 
     def _progress(self, phys: Physics, i: int) -> float:
-        actor = self.scenario.ego if i == self.ego_i else self.scenario.collider
+        actor = self._ego if i == self.ego_i else self._col
         return project_s(actor.route, np.array([phys.x[i], phys.y[i]]))
 
     def time_out(self, t_sim_s: float) -> None:

@@ -86,6 +86,7 @@ class WorldServer:
         # visibility share of identical runs
         self._ego_reports = ego_reports
         self._expected = set(sim.connected_vids)
+        self._ego = sim.scenario.ego.vid
         self._live = set(self._expected)
         # the tokens besides the agents' that tick 0 waits for: liveliness key -> name
         self._awaited = {keys.participant_alive(run_id, name): name for name in wait_for}
@@ -273,7 +274,7 @@ class WorldServer:
             while not self._stopping.is_set():
                 waiting = [v for v in self._live if self._cmds.get(v) is None or self._cmds[v].tick < k]
                 self._waiting_tick, self._waiting = k, set(waiting)
-                ego = self.sim.scenario.ego.vid
+                ego = self._ego
                 report_due = self._ego_reports and ego in self._live and k not in self._reports
                 if not waiting and not report_due:
                     break

@@ -132,6 +132,7 @@ class ChannelProxy:
         self._pubs: dict[str, zenoh.Publisher | ShmPublisher] = {}
         self._bundles: dict[str, ShmPublisher] = {}
         self._extras: dict[int, list] = {}  # the closed phase's frames beyond each slot's own
+        self._awaited: tuple[str, int, set[int]] | None = None  # the phase being collected, whom it waits for
         self._entities: list = []
         self._cpu_mark = time.process_time()
 
@@ -228,7 +229,7 @@ class ChannelProxy:
                         self.counters.duplicate += 1
                         return
                     box[vid] = (msg, raw)
-                    self._cv.notify_all()
+                    self._filed(phase, msg.tick, vid)
                     return
                 extra = self._extra[phase][msg.tick].setdefault(vid, [])
                 if (vid in box and box[vid][1] == raw) or any(r == raw for _, r in extra):
@@ -236,7 +237,7 @@ class ChannelProxy:
                     return
                 if msg.vid == vid and vid not in box:
                     box[vid] = (msg, raw)  # the vehicle's own: played, and waited for
-                    self._cv.notify_all()
+                    self._filed(phase, msg.tick, vid)
                 elif len(extra) >= MAX_EXTRA_FRAMES:
                     self.counters.flooded += 1
                 else:
@@ -244,6 +245,17 @@ class ChannelProxy:
                     extra.append((msg, raw))
 
         return handler
+
+    def _filed(self, phase: str, k: int, vid: int) -> None:
+        """Caller holds ``_cv``: ``vid``'s own message for ``phase`` of tick ``k`` is in.
+        Wakes the collector only when it was the last one the collector waits for: woken
+        by every message, the proxy's main thread spent ~80 wake-ups a tick at 40
+        vehicles re-testing a condition that still held."""
+        awaited = self._awaited
+        if awaited is not None and awaited[0] == phase and awaited[1] == k:
+            awaited[2].discard(vid)
+            if not awaited[2]:
+                self._cv.notify_all()
 
     def _kill(self, vid: int, why: str) -> None:
         """Caller holds ``_cv``."""
@@ -305,7 +317,9 @@ class ChannelProxy:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
+                self._awaited = (phase, k, waiting)  # the inbound callbacks wake us when it empties
                 self._cv.wait(left)
+            self._awaited = None
             self._closed[phase] = max(self._closed[phase], k)
             got = self._inbox[phase].pop(k, {})
             self._extras = {v: frames for v, frames in self._extra[phase].pop(k, {}).items() if frames}

@@ -122,7 +122,12 @@ def distances(xy: np.ndarray) -> np.ndarray:
 
 def link_probabilities(xy: np.ndarray, model: PrrModel, extra_loss: float = 0.0) -> np.ndarray:
     """(C, C) p_ij from positions, times (1 - extra_loss); p_ii = 1; unknown positions give 0."""
-    d = distances(xy)
+    return probabilities_at(distances(xy), model, extra_loss)
+
+
+def probabilities_at(d: np.ndarray, model: PrrModel, extra_loss: float = 0.0) -> np.ndarray:
+    """``link_probabilities`` from the pairwise ``distances`` (the proxy works them out
+    once an interval for both channels and the range)."""
     known = ~np.isnan(d)
     p = np.where(known, model.prr(np.where(known, d, np.inf)), 0.0) * (1.0 - extra_loss)
     np.fill_diagonal(p, 1.0)
@@ -131,7 +136,11 @@ def link_probabilities(xy: np.ndarray, model: PrrModel, extra_loss: float = 0.0)
 
 def in_range(xy: np.ndarray, model: PrrModel) -> np.ndarray:
     """(C, C) bool: j is within the cutoff of i (hears it at all, or is disturbed by it); i reaches itself."""
-    d = distances(xy)
+    return within_cutoff(distances(xy), model)
+
+
+def within_cutoff(d: np.ndarray, model: PrrModel) -> np.ndarray:
+    """``in_range`` from the pairwise ``distances``."""
     r = np.where(np.isnan(d), False, d <= model.max_range_m)
     np.fill_diagonal(r, True)
     return r
@@ -158,10 +167,16 @@ def keyed_uniform(seed: int, *keys: np.ndarray | int) -> np.ndarray:
     pure function of (seed, key tuple), independent of every other draw."""
     arrays = [np.atleast_1d(np.asarray(k)).astype(np.int64).view(np.uint64) for k in keys]
     shape = np.broadcast_shapes(*(a.shape for a in arrays)) if arrays else (1,)
+    # each key mixes in at the shape it broadcasts to so far, not at the draws' full
+    # shape: the same uint64 operations on every element (a draw's hash is its own key
+    # tuple's), but a link draw's (sender, receiver, item) keys mix a (T, 1) head once
+    # per sender, not per link (the proxy draws T x C of them every interval)
+    h = np.full((1,) * len(shape), np.uint64(seed & 0xFFFFFFFFFFFFFFFF))
     with np.errstate(over="ignore"):
-        h = _mix(np.full(shape, np.uint64(seed & 0xFFFFFFFFFFFFFFFF)) + _GOLDEN)
+        h = _mix(h + _GOLDEN)
         for a in arrays:
             h = _mix(h ^ (a + _GOLDEN))
+    h = np.broadcast_to(h, shape)
     return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
 
 

@@ -81,7 +81,12 @@ def collided_at(ov: np.ndarray, sender: np.ndarray, reach: np.ndarray) -> np.nda
     """(T, C) bool: transmission t is lost at receiver c because an overlapping
     transmission's sender reaches c (``reach`` (C, C), reach[i, i] = True, so a receiver
     that is itself transmitting is deaf: half duplex)."""
-    return (ov.astype(np.float32) @ reach[sender].astype(np.float32)) > 0.0
+    out = np.zeros((len(sender), reach.shape[1]), dtype=bool)
+    rows = np.flatnonzero(ov.any(axis=1))  # a TDMA schedule overlaps few airtimes, if any: the product of those
+    if len(rows):  # (a sum of zeros and ones is > 0 with or without the zero terms left out)
+        cols = np.flatnonzero(ov.any(axis=0))
+        out[rows] = (ov[np.ix_(rows, cols)].astype(np.float32) @ reach[sender[cols]].astype(np.float32)) > 0.0
+    return out
 
 
 def busy_ns(start_ns: np.ndarray, end_ns: np.ndarray) -> int:

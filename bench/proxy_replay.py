@@ -2,7 +2,8 @@
 the proxy's own code in one process, no Zenoh; prints the CPU of each part of an
 interval and checks what it publishes against the recording (or writes it out).
 
-    python -m bench.proxy_replay runs/<id>/run.mcap [--rounds 5] [--out bundles.pkl]
+    python -m bench.proxy_replay runs/<id>/run.mcap [--rounds 5] [--json]
+    python -m bench.proxy_replay --wake
 
 The proxy is built as ``autocast run`` builds it (the profile and the seed from the
 recording's metadata, ``relay_extra_frames`` for a signed run) and fed tick by tick:
@@ -137,9 +138,8 @@ def build(rec: Recording):
 
 def replay(rec: Recording) -> tuple[dict[str, list[float]], dict[int, bytes], dict[int, bytes], list[bytes]]:
     """One pass over the recording; thread CPU (ms) of each part, per tick."""
-    from protocol.messages import ControlMsg as _C, DataTx as _D
     p, ctrl_pub, data_pub, stats_pub = build(rec)
-    on_ctrl, on_data = p._inbound("ctrl", _C), p._inbound("data", _D)
+    on_ctrl, on_data = p._inbound("ctrl", ControlMsg), p._inbound("data", DataTx)
     cpu: dict[str, list[float]] = defaultdict(list)
     clock = time.thread_time
     # the two phases are one call; split it where the control phase ends (its bundle out)
@@ -174,6 +174,49 @@ def replay(rec: Recording) -> tuple[dict[str, list[float]], dict[int, bytes], di
     return cpu, ctrl_pub.sent, data_pub.sent, stats_pub.sent
 
 
+def collector_cpu(vehicles: int = 40, gap_s: float = 0.001, rounds: int = 8) -> list[float]:
+    """CPU (ms, thread time) of the proxy's collecting thread in one control phase while
+    ``vehicles`` minimal control messages arrive ``gap_s`` apart through the subscriber
+    callback, in another thread (as Zenoh's callback threads deliver them live)."""
+    import threading
+
+    import numpy as np
+
+    from protocol import keys
+    from protocol.codec import encode
+    from protocol.messages import ObjectMap, Pose
+
+    empty = np.zeros(0, dtype=np.int64)
+    objects = ObjectMap(empty, empty, np.zeros((0, 2), np.float32), empty, np.zeros((0, 0), np.float32),
+                        np.zeros((0, 0), np.float32))
+    out = []
+    for _ in range(rounds):
+        cfg = proxy_mod.ProxyConfig(run_id="w", profile=get_profile("ideal"), phase_timeout_s=30.0)
+        p = proxy_mod.ChannelProxy(cfg, session=None)
+        vids = list(range(vehicles))
+        p._tick = Tick(0, 0.0, vids, [])
+        on_ctrl = p._inbound("ctrl", ControlMsg)
+        samples = [_Sample(keys.net_ctrl_tx("w", v), encode(ControlMsg(0, 0.0, v, Pose(0.0, 0.0, 0.0), 0.0,
+                                                                         np.zeros((0, 3), np.float32), objects, empty)))
+                   for v in vids]
+        cpu: list[float] = []
+
+        def collect() -> None:
+            t = time.thread_time()
+            p._collect("ctrl", 0, set(vids), time.monotonic() + 30.0)
+            cpu.append(time.thread_time() - t)
+
+        collector = threading.Thread(target=collect)
+        collector.start()
+        time.sleep(0.05)
+        for sample in samples:
+            on_ctrl(sample)
+            time.sleep(gap_s)
+        collector.join()
+        out.append(cpu[0] * 1e3)
+    return out
+
+
 _TIMING = ("work_ms", "cpu_ms")
 
 
@@ -184,11 +227,20 @@ def _stats_without_timing(raw: bytes) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mcap", type=Path)
+    ap.add_argument("mcap", type=Path, nargs="?")
+    ap.add_argument("--wake", action="store_true", help="instead: the collecting thread's CPU in one control phase "
+                    "while 40 messages arrive 1 ms apart (collector_cpu)")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--skip", type=int, default=3, help="ticks left out of the medians (warm-up)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.wake:
+        cpu = collector_cpu()
+        print(json.dumps({"collector_ms_per_phase": round(statistics.median(cpu), 3),
+                          "rounds": [round(x, 3) for x in cpu]}))
+        return 0
+    if args.mcap is None:
+        ap.error("a recording is needed (or --wake)")
     rec = load(args.mcap)
     med: dict[str, list[float]] = defaultdict(list)
     for r in range(args.rounds):

@@ -242,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.mcap is None:
         ap.error("a recording is needed (or --wake)")
     rec = load(args.mcap)
+    if rec.meta.get("scheme") == "emp":
+        ap.error("an EMP run: its proxy plays the edge relay, which this replay does not drive")
     med: dict[str, list[float]] = defaultdict(list)
     for r in range(args.rounds):
         cpu, ctrl, data, stats = replay(rec)

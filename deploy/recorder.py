@@ -262,6 +262,49 @@ def _record_plan(cls: type) -> tuple[Converter, dict]:
     return convert, schema
 
 
+@functools.cache
+def _record_json(cls: type) -> Converter:
+    """``_record_plan(cls)[0]`` written out as one generated function of the record: a
+    dict display of its fields, each field's conversion inline (an attribute read and at
+    most one call), where the plan calls a closure per field and a dict comprehension
+    per record. The same values, but a float field stays as it is when it is not finite:
+    ``to_json`` turns any non-finite float into null, as ``_finite`` does."""
+    hints = typing.get_type_hints(cls)
+    env: dict[str, typing.Any] = {"_array_to_json": _array_to_json, "len": len, "list": list}
+    items = [f"{out!r}: {expr}" for out, expr in
+             (_field_json(hints[f.name], cls, f.name, f"value.{f.name}", env, 0) for f in dataclasses.fields(cls))]
+    exec(f"def convert(value):\n    return {{{', '.join(items)}}}", env)  # noqa: S102 - from the class's own fields
+    return env["convert"]
+
+
+def _field_json(hint: typing.Any, owner: type, name: str, v: str, env: dict, depth: int) -> tuple[str, str]:
+    """A field's name in the mirror and its conversion as an expression of ``v`` (the
+    code of ``_plan``'s converter); what the expression calls goes into ``env``."""
+    if hint is np.ndarray:
+        if (owner, name) in JSON_OMITTED:
+            return f"{name}_shape", f"list({v}.shape)"
+        return name, f"_array_to_json({v})"
+    if hint is bytes:
+        return f"{name}_size_bytes", f"len({v})"
+    if hint is float or hint is typing.Any or typing.get_origin(hint) is dict:
+        return name, v
+    if hint in (bool, int, str):
+        env[hint.__name__] = hint
+        return name, f"{hint.__name__}({v})"
+    if typing.get_origin(hint) is list:
+        (inner,) = typing.get_args(hint)
+        item = f"x{depth}"
+        out, expr = _field_json(inner, owner, name, item, env, depth + 1)
+        return out, f"[{expr} for {item} in {v}]"
+    if dataclasses.is_dataclass(hint):
+        env[f"r_{hint.__name__}"] = _record_json(hint)
+        return name, f"r_{hint.__name__}({v})"
+    raise TypeError(f"{owner.__name__}.{name}: no JSON mirror for {hint!r}")
+
+
+_ENCODE_JSON = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode  # json.dumps' own encoder, made once
+
+
 def json_schema_of(cls: type) -> dict:
     """The JSON schema of a message type's mirror."""
     return {"$schema": "http://json-schema.org/draft-07/schema#", **_record_plan(cls)[1],
@@ -270,11 +313,11 @@ def json_schema_of(cls: type) -> dict:
 
 def to_json(msg: typing.Any) -> bytes:
     """A decoded message as its mirror's JSON (non-finite numbers become null)."""
-    obj = _record_plan(type(msg))[0](msg)
+    obj = _record_json(type(msg))(msg)
     try:
-        return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
-    except ValueError:  # NaN or inf inside a free-form dict
-        return json.dumps(_no_nan(obj), separators=(",", ":"), allow_nan=False).encode()
+        return _ENCODE_JSON(obj).encode()
+    except ValueError:  # NaN or inf: in a float field, an array or a free-form dict
+        return _ENCODE_JSON(_no_nan(obj)).encode()
 
 
 def _no_nan(v: typing.Any) -> typing.Any:

@@ -1,0 +1,128 @@
+"""The recorder's faster paths against the code they replaced, kept here as references.
+
+- ``to_json`` (a generated function per record) against the closures of ``_plan`` and
+  ``json.dumps`` it replaced: the same bytes for every message type, NaN and infinities
+  included.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import random
+import typing
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bench import fuzz
+from deploy import recorder
+from deploy.recorder import JSON_OMITTED, to_json
+from protocol.codec import MalformedMessage, decode
+from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, WorldTruth
+
+# ------------------------------------------------------------------ to_json as it was
+
+
+def _ref_finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _ref_plan(hint: typing.Any, owner: type | None = None, name: str = "") -> tuple[str, typing.Callable]:
+    if hint is np.ndarray:
+        if (owner, name) in JSON_OMITTED:
+            return f"{name}_shape", lambda a: list(a.shape)
+        return name, recorder._array_to_json
+    if hint is bytes:
+        return f"{name}_size_bytes", len
+    if hint is float:
+        return name, _ref_finite
+    if hint is bool:
+        return name, bool
+    if hint is int:
+        return name, int
+    if hint is str:
+        return name, str
+    origin = typing.get_origin(hint)
+    if origin is list:
+        (inner,) = typing.get_args(hint)
+        inner_name, conv = _ref_plan(inner, owner, name)
+        return inner_name, (lambda v: [conv(x) for x in v])
+    if origin is dict:
+        return name, (lambda v: v)
+    if dataclasses.is_dataclass(hint):
+        return name, _ref_record(hint)
+    if hint is typing.Any:
+        return name, (lambda v: v)
+    raise TypeError(f"{name}: no JSON mirror for {hint!r}")
+
+
+def _ref_record(cls: type) -> typing.Callable:
+    hints = typing.get_type_hints(cls)
+    plans = [(f.name, *_ref_plan(hints[f.name], cls, f.name)) for f in dataclasses.fields(cls)]
+    return lambda value: {out: conv(getattr(value, name)) for name, out, conv in plans}
+
+
+def _ref_no_nan(v: typing.Any) -> typing.Any:
+    if isinstance(v, float):
+        return _ref_finite(v)
+    if isinstance(v, dict):
+        return {k: _ref_no_nan(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_ref_no_nan(x) for x in v]
+    return v
+
+
+def ref_to_json(msg: typing.Any) -> bytes:
+    obj = _ref_record(type(msg))(msg)
+    try:
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+    except ValueError:
+        return json.dumps(_ref_no_nan(obj), separators=(",", ":"), allow_nan=False).encode()
+
+
+# ------------------------------------------------------------------ to_json
+
+
+@settings(max_examples=60, deadline=None)
+@pytest.mark.parametrize("cls", fuzz.MESSAGE_TYPES, ids=lambda c: c.__name__)
+@given(seed=st.integers(0, 2**64 - 1))
+def test_to_json_gives_the_bytes_the_field_closures_gave(cls, seed):
+    rnd = random.Random(seed)
+    payload = fuzz.valid_payload(cls.__name__, rnd) if seed % 2 else fuzz.fuzz_input(cls.__name__, rnd)
+    try:
+        msg = decode(payload, cls)
+    except MalformedMessage:
+        return
+    assert to_json(msg) == ref_to_json(msg)
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize("msg", [
+    Command(3, NAN, 1, INF, -INF),
+    WorldTruth(1, 0.1, np.array([4, 5]), np.array([[1.5, NAN, 0.25], [INF, 2.0, -INF]], np.float32),
+               np.array([NAN, 3.0], np.float32), np.zeros((2, 3), np.float32)),
+    ChannelStats(2, 0.2, {"a": NAN, "b": [1.0, INF, {"c": -INF}], "d": "NaN"}),
+    AgentReport(2, 0.2, 0, np.array([[0.1, 37.805]], np.float32), 5, True),
+], ids=["float fields", "float32 arrays", "free-form", "plain"])
+def test_non_finite_numbers_become_null_wherever_they_are(msg):
+    assert to_json(msg) == ref_to_json(msg)
+    doc = json.loads(to_json(msg))
+    assert "NaN" not in json.dumps(doc).replace('"NaN"', "")
+
+
+def test_a_control_message_by_hand():
+    objects = ObjectMap(np.array([7]), np.array([120]), np.array([[1.5, -2.25]], np.float32), np.array([3, 4]),
+                        np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32))
+    msg = ControlMsg(4, 0.4, 2, Pose(1.0, -2.5, 0.125), 3.0, np.array([[0.1, 0.2, 0.5]], np.float32), objects,
+                     np.array([1, 3]))
+    assert to_json(msg) == (
+        b'{"tick":4,"t_sim_s":0.4,"vid":2,"pose":{"x_m":1.0,"y_m":-2.5,"yaw_rad":0.125},"speed_mps":3.0,'
+        b'"trajectory":[[0.1,0.2,0.5]],"objects":{"object_id":[7],"size_bytes":[120],"centroid_xy":[[1.5,-2.25]],'
+        b'"receivers":[3,4],"visibility_shape":[1,2],"relevance_shape":[1,2]},"heard":[1,3],"unscheduled":[],'
+        b'"digests":[]}')

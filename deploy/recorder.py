@@ -113,8 +113,18 @@ class Envelope:
 def peek_envelope(payload: bytes) -> Envelope | None:
     """The type, tick and sim time at the head of a message; ``None`` if it is no valid envelope.
 
-    Reads a few dozen bytes whatever the payload's size.
+    Reads a few dozen bytes whatever the payload's size. The head as the codec packs it
+    (an array of up to 65535 items, the type id and version as one byte each, the tick
+    as an unsigned int, the time as a float64) is read straight from the bytes; any
+    other form through msgpack.
     """
+    head = _fast_head(payload)
+    if head is not None:
+        n, type_id, version, tick, t_sim_s = head
+        cls = message_class(type_id)
+        if cls is None or version != cls.VERSION or n != 2 + _field_count(cls):
+            return None
+        return Envelope(cls, tick, t_sim_s)
     unpacker = msgpack.Unpacker(io.BytesIO(payload), read_size=64, raw=False, strict_map_key=False)
     try:
         n = unpacker.read_array_header()
@@ -127,6 +137,46 @@ def peek_envelope(payload: bytes) -> Envelope | None:
     if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
         return None
     return Envelope(cls, tick, float(t_sim_s))
+
+
+_UINT_AFTER = {0xcc: struct.Struct(">B"), 0xcd: struct.Struct(">H"), 0xce: struct.Struct(">I"),
+               0xcf: struct.Struct(">Q")}  # msgpack's unsigned ints by their head byte
+_FLOAT64 = struct.Struct(">d")
+
+
+def _fast_head(payload: bytes) -> tuple[int, int, int, int, float] | None:
+    """(item count, type id, version, tick, t_sim_s) of a payload whose head has the
+    codec's usual form (``peek_envelope``), else None: the same values msgpack reads."""
+    size = len(payload)
+    if size < 12:
+        return None
+    first = payload[0]
+    if 0x90 <= first <= 0x9f:  # fixarray
+        n, at = first & 0x0f, 1
+    elif first == 0xdc:  # array 16
+        n, at = (payload[1] << 8) | payload[2], 3
+    else:
+        return None
+    type_id, version, kind = payload[at], payload[at + 1], payload[at + 2]
+    if type_id >= 0x80 or version >= 0x80:  # positive fixints only
+        return None
+    at += 3
+    if kind < 0x80:
+        tick = kind
+    else:
+        uint = _UINT_AFTER.get(kind)
+        if uint is None or at + uint.size + 9 > size:
+            return None
+        (tick,) = uint.unpack_from(payload, at)
+        at += uint.size
+    if at + 9 > size or payload[at] != 0xcb:
+        return None
+    return n, type_id, version, tick, _FLOAT64.unpack_from(payload, at + 1)[0]
+
+
+@functools.cache
+def _field_count(cls: type) -> int:
+    return len(dataclasses.fields(cls))
 
 
 def _is_a(payload: bytes, cls: type) -> bool:
@@ -273,12 +323,21 @@ def _record_json(cls: type) -> Converter:
     most one call), where the plan calls a closure per field and a dict comprehension
     per record. The same values, but a float field stays as it is when it is not finite:
     ``to_json`` turns any non-finite float into null, as ``_finite`` does."""
-    hints = typing.get_type_hints(cls)
     env: dict[str, typing.Any] = {"_array_to_json": _array_to_json, "len": len, "list": list}
-    items = [f"{out!r}: {expr}" for out, expr in
-             (_field_json(hints[f.name], cls, f.name, f"value.{f.name}", env, 0) for f in dataclasses.fields(cls))]
-    exec(f"def convert(value):\n    return {{{', '.join(items)}}}", env)  # noqa: S102 - from the class's own fields
+    exec(f"def convert(value):\n    return {_record_display(cls, 'value', env, 0)}", env)  # noqa: S102 - from the fields
     return env["convert"]
+
+
+_INLINE_DEPTH = 4  # nested records written out in their owner's function down to this depth; deeper ones called
+
+
+def _record_display(cls: type, v: str, env: dict, depth: int) -> str:
+    """The dict display of record ``v`` (an expression) of type ``cls``: nested records,
+    a list of them too (a data bundle's receptions), inline instead of a call each."""
+    hints = typing.get_type_hints(cls)
+    items = [f"{out!r}: {expr}" for out, expr in
+             (_field_json(hints[f.name], cls, f.name, f"{v}.{f.name}", env, depth) for f in dataclasses.fields(cls))]
+    return f"{{{', '.join(items)}}}"
 
 
 def _field_json(hint: typing.Any, owner: type, name: str, v: str, env: dict, depth: int) -> tuple[str, str]:
@@ -301,6 +360,8 @@ def _field_json(hint: typing.Any, owner: type, name: str, v: str, env: dict, dep
         out, expr = _field_json(inner, owner, name, item, env, depth + 1)
         return out, f"[{expr} for {item} in {v}]"
     if dataclasses.is_dataclass(hint):
+        if depth < _INLINE_DEPTH:
+            return name, _record_display(hint, v, env, depth + 1)
         env[f"r_{hint.__name__}"] = _record_json(hint)
         return name, f"r_{hint.__name__}({v})"
     raise TypeError(f"{owner.__name__}.{name}: no JSON mirror for {hint!r}")

@@ -5,6 +5,8 @@
   included.
 - ``FastWriter.add_message`` against mcap's ``Writer.add_message``: the same file, byte
   for byte, across chunks and channels.
+- ``peek_envelope``, which reads the codec's usual head from the bytes, against
+  msgpack's ``Unpacker``: the same envelope or None for any head.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import math
 import random
 import typing
 
+import msgpack
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -26,7 +29,7 @@ from deploy import recorder
 from deploy.recorder import JSON_OMITTED, McapLog, to_json
 from mcap.writer import Writer
 
-from protocol.codec import MalformedMessage, decode, encode
+from protocol.codec import MalformedMessage, decode, encode, message_class
 from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, Scan, WorldTruth
 
 # ------------------------------------------------------------------ to_json as it was
@@ -176,3 +179,62 @@ def test_the_fast_writer_is_in_use_and_a_message_by_hand():
     head = bytes([5]) + (22 + len(payload)).to_bytes(8, "little") + (1).to_bytes(2, "little") + bytes(4) + \
         (5).to_bytes(8, "little") + (300_000_000).to_bytes(8, "little")
     assert chunk.endswith(head + payload)
+
+
+# ------------------------------------------------------------------ peek_envelope
+
+
+def ref_peek_envelope(payload: bytes):
+    """peek_envelope as it was: msgpack's Unpacker over the head."""
+    unpacker = msgpack.Unpacker(io.BytesIO(payload), read_size=64, raw=False, strict_map_key=False)
+    try:
+        n = unpacker.read_array_header()
+        type_id, version, tick, t_sim_s = (unpacker.unpack() for _ in range(4))
+    except Exception:
+        return None
+    cls = message_class(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
+    if cls is None or version != cls.VERSION or n != 2 + len(dataclasses.fields(cls)):
+        return None
+    if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
+        return None
+    return recorder.Envelope(cls, tick, float(t_sim_s))
+
+
+def _same_envelope(a, b) -> bool:
+    if a is None or b is None:
+        return a is b
+    return (a.cls, a.tick, type(a.t_sim_s)) == (b.cls, b.tick, type(b.t_sim_s)) and \
+        (a.t_sim_s == b.t_sim_s or (math.isnan(a.t_sim_s) and math.isnan(b.t_sim_s)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**64 - 1))
+def test_peek_envelope_reads_what_msgpack_read(seed):
+    rnd = random.Random(seed)
+    payload = fuzz.valid_payload(fuzz.ENVELOPE, rnd) if seed % 3 == 0 else fuzz.fuzz_input(fuzz.ENVELOPE, rnd)
+    assert _same_envelope(recorder.peek_envelope(payload), ref_peek_envelope(payload))
+
+
+@given(type_id=st.one_of(st.integers(-2**63, 2**64 - 1), st.booleans(), st.floats(), st.none()),
+       version=st.one_of(st.integers(-2**63, 2**64 - 1), st.booleans(), st.floats()),
+       tick=st.one_of(st.integers(-2**63, 2**64 - 1), st.floats(), st.booleans(), st.text(max_size=3)),
+       t_sim_s=st.one_of(st.floats(), st.integers(-2**63, 2**64 - 1), st.booleans(), st.none()),
+       extra=st.integers(0, 20), single=st.booleans(), cut=st.integers(0, 40))
+def test_any_head_peeks_as_msgpack_read_it(type_id, version, tick, t_sim_s, extra, single, cut):
+    """Every form of each envelope value (ints of every width, float32 and float64 times,
+    arrays of 16 items and more), whole or cut short."""
+    body = [type_id, version, tick, t_sim_s] + [0] * extra
+    try:
+        payload = msgpack.packb(body, use_single_float=single)
+    except OverflowError:  # a float64 beyond float32's range
+        return
+    for p in (payload, payload[:cut]):
+        assert _same_envelope(recorder.peek_envelope(p), ref_peek_envelope(p))
+
+
+@pytest.mark.parametrize("tick", [0, 127, 128, 255, 256, 65535, 65536, 2**32, 2**64 - 1])
+def test_a_tick_of_every_width_by_hand(tick):
+    payload = encode(Command(tick, 0.5, 1, -2.0, 0.1))
+    env = recorder.peek_envelope(payload)
+    assert (env.cls, env.tick, env.t_sim_s) == (Command, tick, 0.5)
+    assert recorder._fast_head(payload) == (7, Command.TYPE_ID, Command.VERSION, tick, 0.5)

@@ -263,9 +263,12 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+_FLOAT32 = np.dtype(np.float32)  # what ``a.dtype == np.float32`` compares with, made once
+
+
 def _array_to_json(a: np.ndarray) -> list:
-    if a.dtype == np.float32:  # float32 -> shortest decimals it holds, not 2.140781044769287
-        return np.round(a.astype(np.float64), 6).tolist()
+    if a.dtype == _FLOAT32:  # float32 -> shortest decimals it holds, not 2.140781044769287
+        return a.astype(np.float64).round(6).tolist()  # np.round's own method, without its wrapper
     return a.tolist()
 
 

@@ -39,11 +39,17 @@ def _ref_finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _ref_array_to_json(a: np.ndarray) -> list:
+    if a.dtype == np.float32:
+        return np.round(a.astype(np.float64), 6).tolist()
+    return a.tolist()
+
+
 def _ref_plan(hint: typing.Any, owner: type | None = None, name: str = "") -> tuple[str, typing.Callable]:
     if hint is np.ndarray:
         if (owner, name) in JSON_OMITTED:
             return f"{name}_shape", lambda a: list(a.shape)
-        return name, recorder._array_to_json
+        return name, _ref_array_to_json
     if hint is bytes:
         return f"{name}_size_bytes", len
     if hint is float:
@@ -93,6 +99,22 @@ def ref_to_json(msg: typing.Any) -> bytes:
 
 
 # ------------------------------------------------------------------ to_json
+
+
+@given(bits=st.lists(st.integers(0, 2**32 - 1), max_size=40), rows=st.integers(1, 4))
+def test_a_float32_array_rounds_to_the_bits_np_round_gave(bits, rows):
+    """Any float32 (NaN, infinities, -0.0, subnormals, the largest) in any shape."""
+    flat = np.array(bits, np.uint32).view(np.float32)
+    for a in (flat, flat[: len(flat) // rows * rows].reshape(rows, -1), flat.astype(">f4")):
+        got, want = recorder._array_to_json(a), _ref_array_to_json(a)
+        assert np.array_equal(np.array(got, np.float64).view(np.uint64), np.array(want, np.float64).view(np.uint64))
+        assert repr(got) == repr(want)
+
+
+def test_float32_rounding_by_hand():
+    a = np.array([[37.805, 0.1], [-2.25, 1e-7]], np.float32)
+    assert recorder._array_to_json(a) == [[37.805, 0.1], [-2.25, 0.0]]
+    assert recorder._array_to_json(np.array([1, 2], np.int64)) == [1, 2]
 
 
 @settings(max_examples=60, deadline=None)

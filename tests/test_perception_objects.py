@@ -150,7 +150,7 @@ def test_rays_by_label_equals_the_per_ray_count(seed, run):
     az = np.sort(rng.uniform(-np.pi, np.pi, n_az))
     tan_el = np.tan(rng.uniform(-0.4, 0.05, n_beams))
     m = int(rng.integers(0, 300))
-    rays = np.empty((m, 3), dtype=np.int32)
+    rays = np.empty((m, 3), dtype=np.uint32)  # as scan_grid gives them
     rays[:, 0] = np.sort(rng.integers(0, n_az, m))
     rays[:, 1] = rng.integers(0, n_beams, m)
     rays[:, 2] = np.repeat(rng.integers(0, n * n, m // run + 1), run)[:m]
@@ -170,7 +170,7 @@ def test_rays_by_label_groups_by_label_in_ray_order():
     """Three rays straight ahead (azimuth 0, level beam) at 10, 20 and 30 m, in cells
     labelled 2, 1, 2: label 1 gets the 20 m ray, label 2 the 10 and 30 m ones."""
     range_cm = np.array([[1000, 2000, 3000]], dtype=np.uint16)
-    rays = np.array([[0, 0, 5], [0, 1, 6], [0, 2, 7]], dtype=np.int32)
+    rays = np.array([[0, 0, 5], [0, 1, 6], [0, 2, 7]], dtype=np.uint32)
     flat_labels = np.array([0, 0, 0, 0, 0, 2, 1, 2], dtype=np.int32)
     pts, pts32, bounds, sums = _rays_by_label(range_cm, np.ones(1), np.zeros(1), np.zeros(3), 0.0, 0.0, 0.0, 1.9,
                                               rays, flat_labels, 2)

@@ -380,7 +380,7 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     range image: the same grid, without the world points of every ray in memory (at 40
     vehicles 110 000 rays of 24 bytes, read three times). ``tables``: the LiDAR's cos
     and sin of each azimuth and tan of each elevation (``frames.ray_tables``). Returns
-    the grid and, for ``scan_objects``: the rays that can belong to an object, int32
+    the grid and, for ``scan_objects``: the rays that can belong to an object, uint32
     (m, 3) rows (azimuth, beam, flat cell) of each return above the ground in a
     drivable cell of the grid, in ray order (about a fifth of the rays); and those
     cells (``_above_cells``), found as they turn ABOVE rather than by a scan of the grid."""
@@ -390,7 +390,9 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     j0 = math.floor(y / spec.cell_m) - n // 2
     state = np.zeros(n * n, dtype=np.uint8)
     window = drivable.window(i0, j0, n)
-    rays = np.empty((range_cm.size, 3), dtype=np.int32)  # pages past the m rows written are never touched
+    # pages past the m rows written are never touched; unsigned: an index read from it needs no test for
+    # a negative value (``_rays_by_label``: 130 -> 95 us a 40-vehicle scan)
+    rays = np.empty((range_cm.size, 3), dtype=np.uint32)
     cells = np.empty(n * n, dtype=np.int64)  # likewise
     cos_az, sin_az, tan_el = tables
     lo_cm, hi_cm = above_ranges(tan_el, mount_m, spec.ground_clear_m)

@@ -1,6 +1,5 @@
-"""The grid's per-beam kernel against the integer arithmetic and the float height test
-it replaced (kept here as the reference), plus a hand-derived azimuth; the beams'
-above-the-ground ranges against that height test for every range."""
+"""The grid's per-beam kernel against the integer arithmetic it replaced (kept here as
+the reference), plus a hand-derived azimuth."""
 
 from __future__ import annotations
 
@@ -9,9 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from protocol.messages import LidarConfig
-from vehicle_agent.frames import ray_tables
-from vehicle_agent.perception import LatticeRaster, _above_ranges, _beam_cells, above_ranges
+from vehicle_agent.perception import LatticeRaster, _beam_cells
 
 
 @njit(cache=True)
@@ -33,10 +30,9 @@ def reference_beam_cells(range_row, wx, wy, x, y, i0, j0, cell, inv, n, mount_m,
 
 def _both(range_row, wx, wy, x, y, i0, j0, cell, inv, n, tan_el):
     out = []
-    lo, hi = _above_ranges(tan_el, 1.9, 0.25)
-    for kernel, height in ((_beam_cells, (lo, hi)), (reference_beam_cells, (1.9, tan_el, 0.25))):
+    for kernel in (_beam_cells, reference_beam_cells):
         cells, above = np.empty(len(range_row), dtype=np.int64), np.empty(len(range_row), dtype=np.bool_)
-        kernel(range_row, wx, wy, x, y, i0, j0, cell, inv, n, *height, cells, above)
+        kernel(range_row, wx, wy, x, y, i0, j0, cell, inv, n, 1.9, tan_el, 0.25, cells, above)
         out.append((cells.tolist(), above.tolist()))
     return out
 
@@ -71,53 +67,9 @@ def test_an_azimuth_along_x_fills_the_cells_it_crosses():
     range_row = np.array([30, 80, 130, 180, 0], dtype=np.uint16)
     tan_el = np.array([0.0, -10.0, -10.0, -10.0, 0.0])
     cells, above = np.empty(5, dtype=np.int64), np.empty(5, dtype=np.bool_)
-    _beam_cells(range_row, 1.0, 0.0, 0.2, 0.2, 0, 0, 0.5, 2.0, 4, *_above_ranges(tan_el, 1.9, 0.25), cells, above)
+    _beam_cells(range_row, 1.0, 0.0, 0.2, 0.2, 0, 0, 0.5, 2.0, 4, 1.9, tan_el, 0.25, cells, above)
     assert cells.tolist() == [1, 2, 3, -1, -1]
     assert above.tolist() == [True, False, False, False, True]
-
-
-def reference_above(tan_el, mount_m, clear):
-    """(beams, 65536) the height test of ``_beam_cells`` as it was, for every range (cm)."""
-    d = np.arange(65536, dtype=np.uint16) * 0.01
-    return np.array([mount_m + d * t > clear for t in tan_el])
-
-
-def _in_ranges(lo, hi):
-    r = np.arange(65536)
-    return (r >= lo[:, None]) & (r < hi[:, None])
-
-
-def test_above_ranges_hold_every_range_of_the_lidars_beams():
-    """Every range (cm) of every beam of the default LiDAR, at its mount height and the
-    grid's clearance and at others: the ranges' test is the height test."""
-    tan_el = ray_tables(LidarConfig())[2]
-    for mount_m, clear in ((LidarConfig().mount_height_m, 0.25), (1.9, 0.25), (0.2, 0.5), (2.5, -0.1)):
-        lo, hi = _above_ranges(tan_el, mount_m, clear)
-        assert np.array_equal(_in_ranges(lo, hi), reference_above(tan_el, mount_m, clear))
-
-
-@settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), mount_m=st.floats(-1.0, 4.0), clear=st.floats(-1.0, 3.0))
-def test_above_ranges_equal_the_height_test(seed, mount_m, clear):
-    """Random elevations (some level, some up), mount heights and clearances, every range."""
-    rng = np.random.default_rng(seed)
-    tan_el = np.tan(rng.uniform(-0.6, 0.3, 8))
-    tan_el[rng.integers(0, 8)] = 0.0
-    lo, hi = _above_ranges(tan_el, mount_m, clear)
-    assert np.array_equal(_in_ranges(lo, hi), reference_above(tan_el, mount_m, clear))
-
-
-def test_above_ranges_by_hand():
-    """Mounted at 1.9 m, clearance 0.251 m: a beam down at tan -0.3 is above while
-    1.9 - 0.003 r > 0.251, r < 549.67 cm; a level and an upward beam always. Mounted at
-    0.2 m, clearance 0.2505 m, a beam up at tan 0.02: 0.2 + 0.0002 r > 0.2505 from
-    r = 253 cm on. The table is worked out once per array of elevations."""
-    tan_el = np.array([-0.3, 0.0, 0.035])
-    lo, hi = above_ranges(tan_el, 1.9, 0.251)
-    assert lo.tolist() == [0, 0, 0] and hi.tolist() == [550, 65536, 65536]
-    assert above_ranges(tan_el, 1.9, 0.251)[0] is lo
-    lo, hi = _above_ranges(np.array([0.02]), 0.2, 0.2505)
-    assert lo.tolist() == [253] and hi.tolist() == [65536]
 
 
 def reference_cut(raster: LatticeRaster, i0: int, j0: int, n: int) -> np.ndarray:

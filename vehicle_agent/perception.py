@@ -391,54 +391,13 @@ def scan_grid(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.nda
     state = np.zeros(n * n, dtype=np.uint8)
     window = drivable.window(i0, j0, n)
     # pages past the m rows written are never touched; unsigned: an index read from it needs no test for
-    # a negative value (``_rays_by_label``: 130 -> 95 us a 40-vehicle scan)
+    # a negative value (``_rays_by_label``: 130 -> 95 us a 40-vehicle scan, hot)
     rays = np.empty((range_cm.size, 3), dtype=np.uint32)
     cells = np.empty(n * n, dtype=np.int64)  # likewise
     cos_az, sin_az, tan_el = tables
-    lo_cm, hi_cm = above_ranges(tan_el, mount_m, spec.ground_clear_m)
-    m, m_cells = _bin_rays(range_cm, cos_az, sin_az, lo_cm, hi_cm, x, y, yaw, i0, j0, spec.cell_m,
-                           exact_inverse(spec.cell_m), n, window.ravel(), state, rays, cells)
+    m, m_cells = _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, spec.cell_m,
+                           exact_inverse(spec.cell_m), n, spec.ground_clear_m, window.ravel(), state, rays, cells)
     return _new_grid(spec, i0, j0, state.reshape(n, n), window), (rays[:m], np.sort(cells[:m_cells]))
-
-
-_ABOVE_RANGES: dict[tuple[int, float, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-
-
-def above_ranges(tan_el: np.ndarray, mount_m: float, clear_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """``_above_ranges`` of a LiDAR's elevations (``frames.ray_tables``' tan, the same
-    array every tick), worked out once per LiDAR, mount height and ground clearance."""
-    key = (id(tan_el), mount_m, clear_m)
-    known = _ABOVE_RANGES.get(key)
-    if known is None or known[0] is not tan_el:  # the array itself is kept: its id stays its own
-        known = (tan_el, *_above_ranges(tan_el, mount_m, clear_m))
-        _ABOVE_RANGES[key] = known
-    return known[1], known[2]
-
-
-@njit(cache=True)
-def _above_ranges(tan_el, mount_m, clear):
-    """Per beam b, the ranges r (cm, every uint16) of the returns above the ground,
-    ``mount_m + r * 0.01 * tan_el[b] > clear`` (``_bin_rays``' test), as int32 bounds:
-    exactly those with ``lo[b] <= r < hi[b]``. They are a range: r * 0.01, its product
-    with tan_el[b] and the sum with mount_m each round monotonically, so the test holds
-    for every r above some bound (tan_el[b] > 0), below it (< 0), for all or for none.
-    Worked out for each of the 65536 values, and checked to be a range."""
-    n_beams = len(tan_el)
-    lo, hi = np.zeros(n_beams, dtype=np.int32), np.zeros(n_beams, dtype=np.int32)
-    for b in range(n_beams):
-        first, last, count = -1, -1, 0
-        for r in range(65536):
-            d = r * 0.01
-            if mount_m + d * tan_el[b] > clear:
-                if first < 0:
-                    first = r
-                last = r
-                count += 1
-        if count != (last - first + 1 if count else 0):
-            raise ValueError("the returns above the ground are not a range of ranges")
-        if count:
-            lo[b], hi[b] = first, last + 1
-    return lo, hi
 
 
 _new_grid = slots_constructor(Grid)  # Grid(...) without the frozen __init__'s cost
@@ -460,18 +419,16 @@ def scan_objects(range_cm: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.
 
 
 @njit(cache=True)
-def _bin_rays(range_cm, cos_az, sin_az, lo_cm, hi_cm, x, y, yaw, i0, j0, cell, inv, n, drivable, state, rays,
-              cells_above):
+def _bin_rays(range_cm, cos_az, sin_az, tan_el, x, y, yaw, mount_m, i0, j0, cell, inv, n, clear, drivable, state,
+              rays, cells_above):
     """``_bin`` of the rays' world points (``frames._ranges_to_world``'s arithmetic):
     classify cells; ``rays[:m]`` gets (azimuth, beam, flat cell) of each ray with a
     return above the ground in a ``drivable`` cell of the grid, in ray order, and
     ``cells_above[:m_cells]`` each such cell once (unordered); returns (m, m_cells).
-    ``inv``: ``exact_inverse(cell)``; ``lo_cm``, ``hi_cm``: ``_above_ranges``, the
-    ranges of each beam whose return is above the ground. Replaces a per-ray int32 cell
-    (every ray written, then every ray read twice): only these rays can be in an object.
-    Per azimuth, the cells and heights of its beams first, in a loop without branches
-    (the compiler vectorises it), then the cells' updates: 0.29 -> 0.18 ms a 40-vehicle
-    scan."""
+    ``inv``: ``exact_inverse(cell)``. Replaces a per-ray int32 cell (every ray written,
+    then every ray read twice): only these rays can be in an object. Per azimuth, the
+    cells and heights of its beams first, in a loop without branches (the compiler
+    vectorises it), then the cells' updates: 0.29 -> 0.18 ms a 40-vehicle scan."""
     c, s = np.cos(yaw), np.sin(yaw)
     n_beams = range_cm.shape[1]
     cells = np.empty(n_beams, dtype=np.int64)  # -1: no return, or outside the grid
@@ -480,7 +437,7 @@ def _bin_rays(range_cm, cos_az, sin_az, lo_cm, hi_cm, x, y, yaw, i0, j0, cell, i
     for i in range(range_cm.shape[0]):
         wx = c * cos_az[i] - s * sin_az[i]
         wy = s * cos_az[i] + c * sin_az[i]
-        _beam_cells(range_cm[i], wx, wy, x, y, i0, j0, cell, inv, n, lo_cm, hi_cm, cells, above)
+        _beam_cells(range_cm[i], wx, wy, x, y, i0, j0, cell, inv, n, mount_m, tan_el, clear, cells, above)
         for b in range(n_beams):
             q = cells[b]
             if q < 0:
@@ -499,33 +456,29 @@ def _bin_rays(range_cm, cos_az, sin_az, lo_cm, hi_cm, x, y, yaw, i0, j0, cell, i
 
 
 @njit(cache=True)
-def _beam_cells(range_row, wx, wy, x, y, i0, j0, cell, inv, n, lo_cm, hi_cm, cells, above):
+def _beam_cells(range_row, wx, wy, x, y, i0, j0, cell, inv, n, mount_m, tan_el, clear, cells, above):
     """``_bin_rays``' cells (-1: no return or outside the grid) and above-the-ground
     flags of one azimuth's beams, its horizontal direction (wx, wy). No branch inside a
     loop, so that the compiler vectorises it: the division's loop is a second copy. The
     column, row and flat cell are whole numbers in float64 (exact below 2^53), converted
-    once to int64: one conversion and no 64-bit integer product per beam. Above the
-    ground: the range within the beam's ``_above_ranges`` (two integer comparisons for
-    the height's product, sum and comparison)."""
+    once to int64: one conversion and no 64-bit integer product per beam."""
     fn = float(n)
     if inv > 0.0:
         for b in range(len(range_row)):
-            r = range_row[b]
-            d = r * 0.01
+            d = range_row[b] * 0.01
             ix = np.floor((x + d * wx) * inv) - i0
             iy = np.floor((y + d * wy) * inv) - j0
-            inside = (r != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
+            inside = (range_row[b] != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
             cells[b] = np.int64(iy * fn + ix) if inside else -1
-            above[b] = (r >= lo_cm[b]) & (r < hi_cm[b])
+            above[b] = mount_m + d * tan_el[b] > clear
     else:
         for b in range(len(range_row)):
-            r = range_row[b]
-            d = r * 0.01
+            d = range_row[b] * 0.01
             ix = np.floor((x + d * wx) / cell) - i0
             iy = np.floor((y + d * wy) / cell) - j0
-            inside = (r != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
+            inside = (range_row[b] != 0) & (ix >= 0.0) & (iy >= 0.0) & (ix < fn) & (iy < fn)
             cells[b] = np.int64(iy * fn + ix) if inside else -1
-            above[b] = (r >= lo_cm[b]) & (r < hi_cm[b])
+            above[b] = mount_m + d * tan_el[b] > clear
 
 
 @njit(cache=True)

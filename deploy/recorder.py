@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import importlib.metadata
 import inspect
 import io
 import json
@@ -399,6 +400,9 @@ def _no_nan(v: typing.Any) -> typing.Any:
 
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # a Message record's opcode, length, channel, sequence, log and publish time
+# FastWriter mirrors this release's Writer internals (checked byte for byte by tests/test_recorder_fast.py);
+# with any other release of mcap the recorder writes through mcap's own Writer
+FAST_WRITER_MCAP = "1.6."
 
 
 class FastWriter(Writer):
@@ -409,8 +413,8 @@ class FastWriter(Writer):
     included). And a chunk is compressed by one ``ZstdCompressor`` made once (the
     library's ``zstandard.compress`` makes one per chunk and level 3's tables cost a
     third of the compression of a 1 MB chunk); the same bytes. Anything it cannot do so
-    (a writer without chunks, a library whose internals differ) goes through
-    ``Writer``'s own methods."""
+    (a writer without chunks, another release of mcap than ``FAST_WRITER_MCAP``) goes
+    through ``Writer``'s own methods."""
 
     _PRIVATE = ("statistics", "chunk_size", "finalize_chunk", "compression", "enable_crcs", "flush", "stream",
                 "record_builder", "index_types", "chunk_indices")
@@ -420,6 +424,7 @@ class FastWriter(Writer):
         chunk = getattr(self, "_Writer__chunk_builder", None)
         buffer = getattr(getattr(chunk, "record_writer", None), "_buffer", None)
         self._fast = chunk is not None and isinstance(buffer, io.BytesIO) and \
+            importlib.metadata.version("mcap").startswith(FAST_WRITER_MCAP) and \
             all(hasattr(self, f"_Writer__{name}") for name in self._PRIVATE)
         self._zstd = zstandard.ZstdCompressor(level=3) if self._fast else None  # zstandard.compress's level
 

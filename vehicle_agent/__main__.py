@@ -488,9 +488,12 @@ class Pipeline:
     def _report(self, view, plan, scan: Scan) -> None:
         own = [t.detection.points_world[:, :2] for t in view.tracks]
         shared = self.agent.dataplane.shared_batch.points[:, :2]  # every object's points, object after object
-        xy = np.concatenate(own + [shared])
+        # cast to float32 as it is gathered: the same rounding of each value as a float64 copy cast
+        # after, without that copy (~67 000 points a tick for the ego at 40 vehicles, on the tick's
+        # critical path: the world steps once it has this report)
+        xy = np.concatenate(own + [shared], dtype=np.float32)
         n_shared = len(shared)
-        msg = AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy.astype(np.float32), n_shared, plan.braking)
+        msg = AgentReport(scan.tick, scan.t_sim_s, self.mission.vid, xy, n_shared, plan.braking)
         self.report(self.guard.seal(msg) if self.guard is not None else encode(msg))
 
     def timing_summary(self) -> dict[str, float]:

@@ -21,6 +21,7 @@ from protocol import keys
 from protocol.codec import encode
 from protocol.messages import ChannelStats, ControlMsg, DataBundle, DataTx, ObjectMap, Pose, Reception, Tick, \
     Transmission
+from tests.conftest import wait_until
 
 # ------------------------------------------------------------------ the references (the code before)
 
@@ -335,20 +336,40 @@ def _ctrl(vid: int, k: int) -> ControlMsg:
     return ControlMsg(k, k * 0.1, vid, Pose(0.0, 0.0, 0.0), 0.0, np.zeros((0, 3), np.float32), objects, empty)
 
 
+class _CountingCondition(threading.Condition):
+    """A condition that counts its ``notify_all`` calls (the collector's wake-ups)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.notified = 0
+
+    def notify_all(self) -> None:
+        self.notified += 1
+        super().notify_all()
+
+
 def test_the_collector_wakes_when_the_last_message_it_waits_for_is_in():
-    p = ChannelProxy(ProxyConfig(run_id="t", profile=get_profile("ideal"), phase_timeout_s=30.0), None)
+    """Vehicle 1's message, and its message of the next tick, leave the collector
+    asleep (no notify) and still awaiting vehicle 2; vehicle 2's message wakes it and
+    the phase closes with both. The collector's own deadline is an hour: it can only
+    return in time by being woken."""
+    p = ChannelProxy(ProxyConfig(run_id="t", profile=get_profile("ideal"), phase_timeout_s=3600.0), None)
+    p._cv = cv = _CountingCondition()
     p._tick = _tick(0, np.array([1, 2]))
     on_ctrl = p._inbound("ctrl", ControlMsg)
     got = {}
-    collector = threading.Thread(target=lambda: got.update(p._collect("ctrl", 0, {1, 2}, time.monotonic() + 30.0)))
+    collector = threading.Thread(target=lambda: got.update(p._collect("ctrl", 0, {1, 2}, time.monotonic() + 3600.0)))
     collector.start()
-    time.sleep(0.2)
-    on_ctrl(_Sample(keys.net_ctrl_tx("t", 1), encode(_ctrl(1, 0))))
-    on_ctrl(_Sample(keys.net_ctrl_tx("t", 1), encode(_ctrl(1, 1))))  # the next tick's: not awaited
-    time.sleep(0.3)
-    assert collector.is_alive(), "the phase closed with vehicle 2 missing"
-    t0 = time.monotonic()
-    on_ctrl(_Sample(keys.net_ctrl_tx("t", 2), encode(_ctrl(2, 0))))
-    collector.join(10.0)
-    assert not collector.is_alive() and time.monotonic() - t0 < 5.0
-    assert sorted(got) == [1, 2] and p._awaited is None
+    try:
+        wait_until(lambda: p._awaited is not None, "the collector waits")
+        on_ctrl(_Sample(keys.net_ctrl_tx("t", 1), encode(_ctrl(1, 0))))
+        on_ctrl(_Sample(keys.net_ctrl_tx("t", 1), encode(_ctrl(1, 1))))  # the next tick's: not awaited
+        with cv:
+            assert cv.notified == 0 and p._awaited == ("ctrl", 0, {2}), "woken, or no longer awaiting vehicle 2"
+        on_ctrl(_Sample(keys.net_ctrl_tx("t", 2), encode(_ctrl(2, 0))))
+        collector.join(60.0)  # a safety net: without the wake-up it sleeps for its hour
+        assert not collector.is_alive(), "the last awaited message did not wake the collector"
+        assert sorted(got) == [1, 2] and p._awaited is None and cv.notified == 1
+    finally:
+        p.stop()  # a failed test leaves no collector asleep
+        collector.join(60.0)

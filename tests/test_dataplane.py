@@ -20,6 +20,8 @@ from vehicle_agent.tracking import Tracker
 from world_server import lidar
 from world_server.geometry import box_corners
 
+from tests.fusion_scenes import received_intervals
+
 OPEN_FIELD = [np.array([[-200.0, -200.0], [200.0, -200.0], [200.0, 200.0], [-200.0, 200.0]])]
 SENSOR = Pose(0.0, 0.0, 0.0)
 
@@ -992,32 +994,11 @@ def test_placing_the_received_objects_in_one_pass_equals_current_not_me_not_cont
     us with something), late and aged-out copies, a grid that sees bare ground under
     some carried-forward objects. The same objects, points and values, bit for bit."""
     from vehicle_agent.fusion import ReceivedStore, not_contradicted, not_me, shared_now
-    from vehicle_agent.payload import decode_objects
 
-    rng = np.random.default_rng(seed)
     a, b = ReceivedStore(), ReceivedStore()
-    spec = GridSpec(half_extent_m=10.0)
-    n = spec.cells
-    poses: list[Pose] = []
-    for tick in range(12):
-        t_now = tick * 0.1
-        poses = (poses + [Pose(float(rng.normal(0, 1)), float(rng.normal(0, 1)), float(rng.normal(0, 0.2)))])[-5:]
-        objs = []
-        for _ in range(int(rng.integers(0, 12))):
-            m = int(rng.integers(0, 40))
-            c = rng.uniform(-8, 8, 3)
-            pts = np.column_stack([rng.normal(c[0], 1.5, m), rng.normal(c[1], 1.0, m), rng.uniform(0, 2, m)])
-            pose = Pose(*rng.normal(0, 20, 2), float(rng.uniform(-np.pi, np.pi)))
-            sensor = world_to_sensor(pts, pose, 1.9).astype(np.float32)
-            objs.append(ObjectPayload(int(rng.integers(0, 5)), int(rng.integers(0, 6)), tick,
-                                      float(np.float32(t_now - rng.choice([0.0, 0.0, 0.1, 0.4, 1.2]))), pose, 1.9,
-                                      sensor.mean(axis=0) if m else np.zeros(3, np.float32),
-                                      rng.normal(0, 3, 2).astype(np.float32), sensor))
-        batch, _ = decode_objects([encode_object(o) for o in objs])
+    for t_now, poses, batch, grid in received_intervals(np.random.default_rng(seed), 12, xy_half_m=8.0, z_low_m=0.0):
         a.add_batch(batch)
         b.add_batch(batch)
-        state = rng.choice(np.array([EMPTY, GROUND, ABOVE], dtype=np.uint8), (n, n), p=[0.2, 0.6, 0.2])
-        grid = Grid(spec, -n // 2, -n // 2, state, np.ones((n, n), dtype=bool))
         want = not_contradicted(not_me(a.current(t_now, set(batch.keys())), poses, 4.5, 1.8), grid)
         got = shared_now(b, t_now, (batch.sender, batch.object_id), poses, 4.5, 1.8, grid)
         assert got.keys == want.keys

@@ -13,6 +13,8 @@ from vehicle_agent import spatial
 from vehicle_agent.spatial import _inside, _ray_rect, rays_needed
 from world_server.geometry import box_corners
 
+from tests.fusion_scenes import received_intervals
+
 
 @njit
 def _quad_distance_ec93cfa(px, py, quad):
@@ -404,36 +406,12 @@ def test_fused_now_equals_fusing_what_shared_now_places(seed):
     around a short history of our poses, late and aged-out copies, points above and
     below the ground clearance, inside and outside the grid, a grid with ABOVE cells of
     its own. The same grid state, received cells, on_own flags and batch, bit for bit."""
-    from protocol.messages import Pose
-    from vehicle_agent.frames import world_to_sensor
     from vehicle_agent.fusion import ReceivedStore, fuse, fused_now, shared_now
-    from vehicle_agent.payload import ObjectPayload, decode_objects, encode_object
-    from vehicle_agent.perception import ABOVE, EMPTY, GROUND, Grid, GridSpec
 
-    rng = np.random.default_rng(seed)
     a, b = ReceivedStore(), ReceivedStore()
-    spec = GridSpec(half_extent_m=10.0)
-    n = spec.cells
-    poses: list[Pose] = []
-    for tick in range(10):
-        t_now = tick * 0.1
-        poses = (poses + [Pose(float(rng.normal(0, 1)), float(rng.normal(0, 1)), float(rng.normal(0, 0.2)))])[-5:]
-        objs = []
-        for _ in range(int(rng.integers(0, 12))):
-            m = int(rng.integers(0, 40))
-            c = rng.uniform(-11, 11, 3)
-            pts = np.column_stack([rng.normal(c[0], 1.5, m), rng.normal(c[1], 1.0, m), rng.uniform(-0.5, 2, m)])
-            pose = Pose(*rng.normal(0, 20, 2), float(rng.uniform(-np.pi, np.pi)))
-            sensor = world_to_sensor(pts, pose, 1.9).astype(np.float32)
-            objs.append(ObjectPayload(int(rng.integers(0, 5)), int(rng.integers(0, 6)), tick,
-                                      float(np.float32(t_now - rng.choice([0.0, 0.0, 0.1, 0.4, 1.2]))), pose, 1.9,
-                                      sensor.mean(axis=0) if m else np.zeros(3, np.float32),
-                                      rng.normal(0, 3, 2).astype(np.float32), sensor))
-        batch, _ = decode_objects([encode_object(o) for o in objs])
+    for t_now, poses, batch, grid in received_intervals(np.random.default_rng(seed), 10, xy_half_m=11.0, z_low_m=-0.5):
         a.add_batch(batch)
         b.add_batch(batch)
-        state = rng.choice(np.array([EMPTY, GROUND, ABOVE], dtype=np.uint8), (n, n), p=[0.2, 0.6, 0.2])
-        grid = Grid(spec, -n // 2, -n // 2, state, np.ones((n, n), dtype=bool))
         want = fuse(grid, shared_now(a, t_now, (batch.sender, batch.object_id), poses, 4.5, 1.8, grid))
         got = fused_now(b, t_now, (batch.sender, batch.object_id), poses, 4.5, 1.8, grid)
         assert got.grid is grid

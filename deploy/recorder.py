@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import importlib.metadata
 import inspect
 import io
 import json
@@ -46,18 +45,15 @@ import sys
 import threading
 import time
 import typing
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import zenoh
-import zstandard
-from mcap.opcode import Opcode
 from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Channel, Chunk, ChunkIndex, Message, MessageIndex, Schema
-from mcap.writer import CompressionType, IndexType, Writer
+from mcap.records import Channel, Message, Schema
+from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, message_class
@@ -399,98 +395,6 @@ def _no_nan(v: typing.Any) -> typing.Any:
     return v
 
 
-_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # a Message record's opcode, length, channel, sequence, log and publish time
-# FastWriter mirrors this release's Writer internals (checked byte for byte by tests/test_recorder_fast.py);
-# with any other release of mcap the recorder writes through mcap's own Writer
-FAST_WRITER_MCAP = "1.6."
-
-
-class FastWriter(Writer):
-    """mcap's ``Writer``, whose ``add_message`` writes the same bytes at a fraction of the
-    cost: the record's head in one ``struct.pack`` into the chunk, where the library
-    builds a ``Message`` and writes its head field by field, seeking back for the
-    length. The recorder writes ~250 messages a tick at 40 vehicles (the mirror's
-    included). And a chunk is compressed by one ``ZstdCompressor`` made once (the
-    library's ``zstandard.compress`` makes one per chunk and level 3's tables cost a
-    third of the compression of a 1 MB chunk); the same bytes. Anything it cannot do so
-    (a writer without chunks, another release of mcap than ``FAST_WRITER_MCAP``) goes
-    through ``Writer``'s own methods."""
-
-    _PRIVATE = ("statistics", "chunk_size", "finalize_chunk", "compression", "enable_crcs", "flush", "stream",
-                "record_builder", "index_types", "chunk_indices")
-
-    def __init__(self, *args: typing.Any, **kwargs: typing.Any) -> None:
-        super().__init__(*args, **kwargs)
-        chunk = getattr(self, "_Writer__chunk_builder", None)
-        buffer = getattr(getattr(chunk, "record_writer", None), "_buffer", None)
-        self._fast = chunk is not None and isinstance(buffer, io.BytesIO) and \
-            importlib.metadata.version("mcap").startswith(FAST_WRITER_MCAP) and \
-            all(hasattr(self, f"_Writer__{name}") for name in self._PRIVATE)
-        self._zstd = zstandard.ZstdCompressor(level=3) if self._fast else None  # zstandard.compress's level
-
-    def _Writer__finalize_chunk(self) -> None:  # noqa: N802 - overrides Writer.__finalize_chunk
-        """``Writer.__finalize_chunk`` (mcap 1.6) with the compressor made once."""
-        chunk_builder = self._Writer__chunk_builder
-        if not self._fast or chunk_builder.num_messages == 0 or self._Writer__compression != CompressionType.ZSTD:
-            Writer._Writer__finalize_chunk(self)
-            return
-        self._Writer__statistics.chunk_count += 1
-        chunk_data = chunk_builder.end()
-        compressed_data = self._zstd.compress(chunk_data)
-        chunk = Chunk(compression="zstd", data=compressed_data, message_start_time=chunk_builder.message_start_time,
-                      message_end_time=chunk_builder.message_end_time,
-                      uncompressed_crc=zlib.crc32(chunk_data) if self._Writer__enable_crcs else 0,
-                      uncompressed_size=len(chunk_data))
-        flush, stream, records = self._Writer__flush, self._Writer__stream, self._Writer__record_builder
-        flush()
-        chunk_start_offset = stream.tell()
-        chunk.write(records)
-        chunk_index = ChunkIndex(message_start_time=chunk.message_start_time, message_end_time=chunk.message_end_time,
-                                 chunk_start_offset=chunk_start_offset, chunk_length=records.count,
-                                 message_index_offsets={}, message_index_length=0, compression=chunk.compression,
-                                 compressed_size=len(compressed_data), uncompressed_size=chunk.uncompressed_size)
-        flush()
-        message_index_start_offset = stream.tell()
-        if self._Writer__index_types & IndexType.MESSAGE:
-            for channel_id, index in chunk_builder.message_indices.items():
-                chunk_index.message_index_offsets[channel_id] = message_index_start_offset + records.count
-                index.write(records)
-        chunk_index.message_index_length = records.count
-        flush()
-        self._Writer__chunk_indices.append(chunk_index)
-        chunk_builder.reset()
-
-    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0) -> None:
-        if not self._fast:
-            super().add_message(channel_id, log_time, data, publish_time, sequence)
-            return
-        head = _MESSAGE_HEAD.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time)
-        stats = self._Writer__statistics
-        if stats.message_count == 0:
-            stats.message_start_time = log_time
-        else:
-            stats.message_start_time = min(log_time, stats.message_start_time)
-        stats.message_end_time = max(log_time, stats.message_end_time)
-        stats.channel_message_counts[channel_id] += 1
-        stats.message_count += 1
-        chunk = self._Writer__chunk_builder
-        if chunk.num_messages == 0:
-            chunk.message_start_time = log_time
-        else:
-            chunk.message_start_time = min(chunk.message_start_time, log_time)
-        chunk.message_end_time = max(chunk.message_end_time, log_time)
-        index = chunk.message_indices.get(channel_id)
-        if index is None:
-            index = chunk.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
-        buffer = chunk.record_writer._buffer  # a new BytesIO after each chunk
-        index.records.append((log_time, buffer.tell()))
-        chunk.num_messages += 1
-        buffer.write(head)
-        buffer.write(data)
-        if buffer.tell() > self._Writer__chunk_size:
-            self._Writer__finalize_chunk()
-
-
 class McapLog:
     """An MCAP writer with a channel per (key, message type) and a schema per type;
     with ``json_mirror``, also a JSON channel per key (``json/<key>``)."""
@@ -498,7 +402,7 @@ class McapLog:
     def __init__(self, stream: typing.BinaryIO, metadata: dict[str, str], compression: str = "zstd",
                  json_mirror: bool = False) -> None:
         kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self.writer = FastWriter(stream, compression=kind)
+        self.writer = Writer(stream, compression=kind)
         self.writer.start(profile="", library="autocast-recorder")
         self.writer.add_metadata(METADATA_NAME, metadata)
         self.json_mirror = json_mirror

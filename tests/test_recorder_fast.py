@@ -3,8 +3,6 @@
 - ``to_json`` (a generated function per record) against the closures of ``_plan`` and
   ``json.dumps`` it replaced: the same bytes for every message type, NaN and infinities
   included.
-- ``FastWriter.add_message`` against mcap's ``Writer.add_message``: the same file, byte
-  for byte, across chunks and channels.
 - ``peek_envelope``, which reads the codec's usual head from the bytes, against
   msgpack's ``Unpacker``: the same envelope or None for any head.
 """
@@ -26,11 +24,10 @@ from hypothesis import strategies as st
 
 from bench import fuzz
 from deploy import recorder
-from deploy.recorder import JSON_OMITTED, McapLog, to_json
-from mcap.writer import Writer
+from deploy.recorder import JSON_OMITTED, to_json
 
 from protocol.codec import MalformedMessage, decode, encode, message_class
-from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, Scan, WorldTruth
+from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, WorldTruth
 
 # A fuzzed float32 array may hold a signalling NaN: widening it to float64 raises numpy's
 # "invalid value" flag, in the old code as in the new; the bytes are what is compared
@@ -160,51 +157,6 @@ def test_a_control_message_by_hand():
         b'"trajectory":[[0.1,0.2,0.5]],"objects":{"object_id":[7],"size_bytes":[120],"centroid_xy":[[1.5,-2.25]],'
         b'"receivers":[3,4],"visibility_shape":[1,2],"relevance_shape":[1,2]},"heard":[1,3],"unscheduled":[],'
         b'"digests":[]}')
-
-
-# ------------------------------------------------------------------ FastWriter
-
-
-def _log_bytes(items: list[tuple[str, bytes, int]], mirror: bool, compression: str) -> bytes:
-    out = io.BytesIO()
-    log = McapLog(out, {"run_id": "t"}, compression, json_mirror=mirror)
-    for item in items:
-        log.write(*item)
-    log.finish()
-    return out.getvalue()
-
-
-@settings(max_examples=12, deadline=None)
-@given(seed=st.integers(0, 2**64 - 1), mirror=st.booleans(), compression=st.sampled_from(["zstd", "none"]))
-def test_the_fast_writer_writes_the_file_the_library_writes(seed, mirror, compression):
-    rnd = random.Random(seed)
-    items = []
-    for i in range(rnd.randint(1, 300)):
-        cls = rnd.choice(fuzz.MESSAGE_TYPES)
-        if rnd.random() < 0.05:  # ~230 KB: a few chunks of 1 MB fill up
-            payload = encode(Scan(i, 0.1 * i, 0, Pose(1.0, 2.0, 0.5), 3.0, np.ones((1800, 64), np.uint16)))
-        elif rnd.random() < 0.1:
-            payload = fuzz.fuzz_input(cls.__name__, rnd)  # malformed ones too: their own channel
-        else:
-            payload = fuzz.valid_payload(cls.__name__, rnd)
-        items.append((f"ac/t/k{rnd.randint(0, 5)}", payload, 10**18 + rnd.randint(-10**9, 10**9)))
-    fast = _log_bytes(items, mirror, compression)
-    with pytest.MonkeyPatch.context() as mp:  # McapLog through mcap's own Writer
-        mp.setattr(recorder, "FastWriter", Writer)
-        assert _log_bytes(items, mirror, compression) == fast
-
-
-def test_the_fast_writer_is_in_use_and_a_message_by_hand():
-    out = io.BytesIO()
-    log = McapLog(out, {}, "none")
-    assert log.writer._fast
-    log.write("ac/t/cmd", encode(Command(3, 0.3, 1, -2.0, 0.1)), 5)
-    chunk = log.writer._Writer__chunk_builder.record_writer._buffer.getvalue()
-    payload = encode(Command(3, 0.3, 1, -2.0, 0.1))
-    # opcode 5, length 22 + payload, channel 1 (0 is no channel), sequence 0, log time 5, publish time 0.3 s
-    head = bytes([5]) + (22 + len(payload)).to_bytes(8, "little") + (1).to_bytes(2, "little") + bytes(4) + \
-        (5).to_bytes(8, "little") + (300_000_000).to_bytes(8, "little")
-    assert chunk.endswith(head + payload)
 
 
 # ------------------------------------------------------------------ peek_envelope

@@ -40,6 +40,7 @@ from deploy.procs import ProcessManager, ProcSpec, RunCpu, batch_scheduling, exi
 from protocol import faults, keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import MapMsg, Mission, Outcome, Scan, Tick
+from protocol.model import OURS, Model, ModelError, add_model_args, model_from
 from protocol.security import REJECTED_LINE
 from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
@@ -114,10 +115,11 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap.add_argument("--scheduler", default=None, metavar="NAME",
                     help="replace the scheme's scheduler (agnostic, autocast, autocast-fptas) with a registered "
                          "one or package.module:function (docs/extending.md)")
-    ap.add_argument("--channel-profile", default=table.DEFAULT_PROFILE, metavar="NAME",
-                    help="the V2V radio: a registered profile or package.module:NAME (default lte-direct; "
+    ap.add_argument("--channel-profile", default=None, metavar="NAME",
+                    help="the V2V radio: a registered profile or package.module:NAME (default: the model's, lte-direct; "
                          "python -m channel_proxy --list-profiles)")
     ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
+    add_model_args(ap)
     sec = ap.add_argument_group("security (docs/security.md)")
     sec.add_argument("--sign", action=argparse.BooleanOptionalAction, default=SIGN_DEFAULT,
                      help="V2X messages signed by each vehicle's certificate from the run's authority and verified "
@@ -198,7 +200,11 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     run_dir = Path(args.out) / run_id
     if run_dir.exists():
         raise InputError(f"run_id: {run_dir} already exists")
-    scheduler, profile = plug_ins_from(args, scheme)
+    try:
+        model = model_from(args)
+    except ModelError as exc:
+        raise InputError(str(exc)) from None
+    scheduler, profile = plug_ins_from(args, scheme, model)
     try:
         faults.parse(os.environ.get(faults.ENV, ""))
     except ValueError as exc:
@@ -206,12 +212,13 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     cfg = table.RunConfig(run_id, hub, params, scheme, run_dir, realtime=args.realtime, scans=scans,
                           agent_timeout_s=agent_timeout_s, log_level=level, scheduler=scheduler,
                           channel_profile=profile, signing=args.sign, lock_down=args.lock_down,
-                          wait_for=wait_for, json_mirror=not args.no_json_mirror)
+                          wait_for=wait_for, json_mirror=not args.no_json_mirror, model=model)
     return LaunchOptions(cfg, timeout_s, warm_up=not args.no_warm_up)
 
 
-def plug_ins_from(args: argparse.Namespace, scheme: str) -> tuple[str | None, str]:
-    """The scheduler and channel profile, loaded here once so a bad name fails before anything starts."""
+def plug_ins_from(args: argparse.Namespace, scheme: str, model: Model = OURS) -> tuple[str | None, str]:
+    """The scheduler and channel profile (the flag's, else the model's), loaded here once so a
+    bad name fails before anything starts."""
     from channel_proxy.profiles import get_profile
     from vehicle_agent.scheduler import UnknownSchedulerError, get
 
@@ -224,8 +231,9 @@ def plug_ins_from(args: argparse.Namespace, scheme: str) -> tuple[str | None, st
             get(scheduler)
         except UnknownSchedulerError as exc:
             raise InputError(f"scheduler: {exc}") from None
-    profile = args.channel_profile
-    if profile != table.DEFAULT_PROFILE and scheme in (*table.NO_PROXY_SCHEMES, table.EMP_SCHEME):
+    profile = args.channel_profile or model.channel_profile
+    if args.channel_profile is not None and args.channel_profile != table.DEFAULT_PROFILE and \
+            scheme in (*table.NO_PROXY_SCHEMES, table.EMP_SCHEME):
         raise InputError(f"channel_profile: scheme {scheme!r} has no V2V channel to apply it to")
     try:
         get_profile(profile)
@@ -500,7 +508,8 @@ class Launcher:
             result["recorder_failed"] = (f"the recorder exited with code {rc} after the outcome: "
                                          f"{self.cfg.mcap_path} may be incomplete (see logs/recorder.log)")
             log.warning("%s", result["recorder_failed"])
-        result.update({"scheme": self.cfg.scheme, "run_dir": str(self.cfg.run_dir),
+        result.update({"scheme": self.cfg.scheme, "model": self.cfg.model.label(),
+                       "model_settings": self.cfg.model.settings(), "run_dir": str(self.cfg.run_dir),
                        "mcap": str(self.cfg.mcap_path) if self.cfg.mcap_path.exists() else None,
                        "malformed": {name: {k: r[k] for k in ("total", "by_key")}  # each process's exit line
                                      for name, r in exit_records(self.cfg.log_dir, MALFORMED_LINE).items()},
@@ -575,11 +584,12 @@ def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -
     """
     record = res.result
     if record is not None:
-        print(summary(record) + f"  [{cfg.scheme}, {wall_s:.1f} s total]")
+        model = "" if cfg.model == OURS else f", model {cfg.model.label()}"
+        print(summary(record) + f"  [{cfg.scheme}{model}, {wall_s:.1f} s total]")
     else:
         record = {"outcome": None, "failure": res.failure, "scenario": cfg.params.scenario,
                   "vehicles": cfg.params.vehicles, "seed": cfg.params.seed, "scheme": cfg.scheme,
-                  "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
+                  "model": cfg.model.label(), "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
                   "mcap": str(cfg.mcap_path) if cfg.mcap_path.exists() else None}
         if res.exit_code == EXIT_INTERRUPTED:
             record["interrupted"] = True

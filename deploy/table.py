@@ -9,10 +9,12 @@ what this table returns; nothing else decides what a run is made of.
 from __future__ import annotations
 
 import functools
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from deploy.procs import ProcSpec
+from protocol.model import OURS, Model
 from world_server.scenarios import ScenarioParams, build
 
 RECORDER = "recorder"
@@ -46,6 +48,7 @@ class RunConfig:
     wait_for: tuple[str, ...] = ()  # participants besides the table's whose token the world waits for before tick 0
     shm_dir: str = ""  # one host's run: the scans and bundles go through this directory (protocol.shm)
     json_mirror: bool = True  # the recorder also writes every message as JSON, for Foxglove (docs/viewing.md)
+    model: Model = OURS  # the modelling profile every process runs under (protocol.model, docs/models.md)
 
     @property
     def mcap_path(self) -> Path:
@@ -111,7 +114,8 @@ def recorder_args(cfg: RunConfig) -> tuple[str, ...]:
     meta = {"scenario": p.scenario, "vehicles": p.vehicles, "seed": p.seed, "scheme": cfg.scheme,
             "scheduler": cfg.scheduler or "", "channel_profile": cfg.channel_profile,
             "collider_speed_kmh": p.collider_speed_kmh, "delta_s": p.delta_s, "duration_s": p.duration_s,
-            "mode": "realtime" if cfg.realtime else "lockstep", "signed": cfg.signing, "lock_down": cfg.lock_down}
+            "mode": "realtime" if cfg.realtime else "lockstep", "signed": cfg.signing, "lock_down": cfg.lock_down,
+            "model": cfg.model.label(), "model_settings": json.dumps(cfg.model.settings(), sort_keys=True)}
     flags = [f for k, v in meta.items() for f in ("--meta", f"{k}={v}")]
     mirror = ("--json-mirror",) if cfg.json_mirror else ()  # JSON beside msgpack: Foxglove reads it (docs/viewing.md)
     return (*_common(cfg, RECORDER), "--out", str(cfg.mcap_path), "--scans", cfg.scans, "--log-level", cfg.log_level,
@@ -123,7 +127,7 @@ def world_args(cfg: RunConfig) -> tuple[str, ...]:
     flags = [*_common(cfg, WORLD), "--agents", "external", "--json", "--log-level", cfg.log_level,
              "--scenario", p.scenario, "--vehicles", str(p.vehicles), "--collider-speed", str(p.collider_speed_kmh),
              "--delta", str(p.delta_s), "--seed", str(p.seed), "--duration", str(p.duration_s),
-             "--agent-timeout-s", str(cfg.agent_timeout_s)]
+             "--agent-timeout-s", str(cfg.agent_timeout_s), *cfg.model.args()]
     if cfg.realtime:
         flags.append("--realtime")
     if cfg.scheme != "lane":  # every agent pipeline but the blind lane follower reports the ego's fused view
@@ -149,6 +153,8 @@ def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
              "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v"]
     if cfg.scheme != EMP_SCHEME:
         flags += ["--profile", cfg.channel_profile]
+    else:  # EMP's segments on the air, as the model charges them
+        flags += ["--emp-bytes-per-point", str(cfg.model.emp_bytes_per_point)]
     if cfg.realtime:
         flags.append("--realtime")
     if cfg.signing:  # receivers verify: the medium relays every frame of a slot
@@ -158,7 +164,7 @@ def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
 
 def agent_args(cfg: RunConfig, vid: int) -> tuple[str, ...]:
     flags = [*_common(cfg, agent_name(vid)), "--vid", str(vid), "--scheme", cfg.scheme, "--log-level",
-             cfg.agent_log_level, "--channel-profile", cfg.channel_profile]
+             cfg.agent_log_level, "--channel-profile", cfg.channel_profile, *cfg.model.args()]
     if cfg.scheduler:
         flags += ["--scheduler", cfg.scheduler]
     if cfg.signing:

@@ -27,6 +27,7 @@ from protocol import keys, phases, shm
 from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Rejected, Scan, Transmission
+from protocol.model import OURS, Model, ModelError, add_model_args, model_from
 from protocol.security import Credentials, plain, with_digests
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
@@ -58,7 +59,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--scheme", default="autocast", choices=SCHEMES,
                     help="sharing scheme: single (no V2V), agnostic, autocast, autocast-fptas, emp; "
                          "lane: a blind lane follower (the world server's test agents)")
-    ap.add_argument("--channel-profile", default="lte-direct",
+    ap.add_argument("--channel-profile", default=None,
                     help="the radio profile the proxy plays (B, T_n, N must agree with it)")
     ap.add_argument("--scheduler", default=None,
                     help="schedule with this registered scheduler or package.module:function instead of "
@@ -67,6 +68,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="this vehicle's key and certificate from the run's authority (protocol/security.py): "
                          "sign what it sends, accept only what verifies (docs/security.md)")
     ap.add_argument("--log-level", default="WARNING")
+    add_model_args(ap)
     shm.add_shm_arg(ap)
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -85,10 +87,12 @@ def _ask(session, key: str, expected: type, deadline: float, drops: DropCounter)
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format=f"%(asctime)s agent{args.vid} %(levelname)s %(message)s")
-    try:  # a bad plug-in name fails here, not at the first schedule
+    try:  # a bad plug-in name or model setting fails here, not at the first schedule
+        args.model = model_from(args)
+        args.channel_profile = args.channel_profile or args.model.channel_profile
         get_profile(args.channel_profile)
-        get_scheduler(args.scheduler or SCHEDULER_OF.get(args.scheme, "autocast"))
-    except (KeyError, UnknownSchedulerError) as exc:
+        get_scheduler(args.scheduler or scheduler_of(args.scheme, args.model))
+    except (KeyError, UnknownSchedulerError, ModelError) as exc:
         print(f"error: {exc.args[0]}", file=sys.stderr)
         return 2
     try:
@@ -115,6 +119,16 @@ PROFILE_ENV = "AUTOCAST_AGENT_PROFILE"  # a directory: each agent profiles its t
 SCHEDULER_OF = {"agnostic": "agnostic", "autocast": "autocast", "autocast-fptas": "autocast-fptas"}
 
 
+def scheduler_of(scheme: str, model: Model = OURS) -> str:
+    """The scheme's own scheduler under ``model``: agnostic's order, and whether AutoCast
+    fills its spare airtime (``autocast``) or not (``greedy``, Algorithm 1 alone)."""
+    if scheme == "agnostic" and model.agnostic_order == "shuffle":
+        return "agnostic-shuffle"
+    if scheme == "autocast" and not model.fill_spare:
+        return "greedy"
+    return SCHEDULER_OF.get(scheme, "autocast")
+
+
 def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     """Fetch the map and mission, then answer every scan with a command until stopped."""
     run, vid = args.run_id, args.vid
@@ -133,10 +147,10 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
                 shm_dir=args.shm_dir, missed=missed)
     guard = Guard(args.credentials, drops) if args.credentials is not None else None
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
-                    report_pub.put if report_pub is not None else None, guard)
+                    report_pub.put if report_pub is not None else None, guard, args.model)
     if step.link is not None:  # one line per agent, like agent_timings at exit: what this vehicle runs with
         config = {"vid": vid, "scheme": args.scheme, "scheduler": step.agreement.scheduler,
-                  "channel_profile": args.channel_profile}
+                  "channel_profile": args.channel_profile, "model": args.model.label()}
         print(f"agent_config {json.dumps(config)}", file=sys.stderr, flush=True)
     if args.scheme != "lane":
         warm_up(step.agent, step.agreement)  # before the token: the world waits for it at startup
@@ -360,18 +374,21 @@ class Pipeline:
 
     def __init__(self, mission: Mission, mapmsg: MapMsg, scheme: str, profile_name: str,
                  scheduler: str | None = None, link=None, report: Callable[[bytes], object] | None = None,
-                 guard: Guard | None = None) -> None:
+                 guard: Guard | None = None, model: Model = OURS) -> None:
         """``link``: the V2V channel (a ``V2VLink``; None for ``single`` and ``lane``);
         ``report``: where the ego's encoded ``AgentReport`` goes (None: not the ego);
-        ``guard``: sign and verify (None: send plain messages, accept plain ones)."""
-        self.mission, self.scheme = mission, scheme
+        ``guard``: sign and verify (None: send plain messages, accept plain ones);
+        ``model``: the modelling profile (``protocol.model``), the same on every vehicle."""
+        self.mission, self.scheme, self.model = mission, scheme, model
         self.guard = guard
         self._sealed: tuple[Command, bytes] | None = None
-        self.agent = Agent(mission, mapmsg)
+        self.agent = Agent(mission, mapmsg, model)
         self.lane_follower = LaneFollower(mission)
         self.link = link
         self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
-                                                      scheduler=scheduler or SCHEDULER_OF.get(scheme, "autocast"))
+                                                      scheduler=scheduler or scheduler_of(scheme, model),
+                                                      group_size=model.group_size or None)
+        self.emp_held: dict[int, tuple[float, np.ndarray]] = {}  # EMP: each sender's last segment (time, points)
         self.heard: list[int] = []
         self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
         self.emp_sites: dict[int, np.ndarray] = {}
@@ -472,17 +489,25 @@ class Pipeline:
         from points above the ground, so they carry nothing it uses. With them, one
         vehicle's segment (~600 KB) overflowed the relay's whole 100 ms and EMP
         delivered nothing at any density. Without them a segment is ~140 KB at 5
-        vehicles (docs/channel.md)."""
+        vehicles (docs/channel.md). A sender whose segment does not come this interval
+        stays in view with its last one for as long as the model holds a received object
+        (``Model.hold_s``), where it was seen: raw points carry no velocity."""
         world = scan_to_world(scan, self.mission.lidar)
         world = world[world[:, 2] > self.agent.dataplane.spec.ground_clear_m]
         own_xy = np.array([scan.pose.x_m, scan.pose.y_m])
         others = np.array([xy for v, xy in sorted(self.emp_sites.items()) if v != self.mission.vid]).reshape(-1, 2)
         segment = world[voronoi_segment(world[:, :2], own_xy, others)]
         bundle = self.link.exchange_emp(scan.tick, scan.t_sim_s, scan.pose, segment)
-        if bundle is None:
-            return None
-        self.emp_sites = {int(v): xy for v, xy in zip(bundle.site_vids, bundle.site_xy)}
-        segments = [seg.points_world.astype(np.float64) for seg in bundle.segments if seg.sender != self.mission.vid]
+        if bundle is not None:
+            self.emp_sites = {int(v): xy for v, xy in zip(bundle.site_vids, bundle.site_xy)}
+            for seg in bundle.segments:
+                if seg.sender != self.mission.vid:
+                    self.emp_held[int(seg.sender)] = (scan.t_sim_s, seg.points_world.astype(np.float64))
+        # each sender's last segment, held for as long as the model holds a received object
+        # (a raw point cloud has no velocity to carry it forward with: it stays where it was seen)
+        self.emp_held = {v: held for v, held in self.emp_held.items()
+                         if scan.t_sim_s - held[0] <= self.model.hold_s + 1e-9}
+        segments = [points for _, (_, points) in sorted(self.emp_held.items())]
         return np.concatenate(segments) if segments else None
 
     def _report(self, view, plan, scan: Scan) -> None:

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import Command, ControlMsg, MapMsg, Mission, Scan
+from protocol.model import OURS, Model
 from vehicle_agent.control import VehicleController, clip
 from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
@@ -30,6 +31,7 @@ from vehicle_agent.planning import STATIC_MPS, Obstacles, Plan, Planner
 class Agent:
     mission: Mission
     mapmsg: MapMsg
+    model: Model = OURS
     dataplane: DataPlane = field(init=False)
     planner: Planner = field(init=False)
     controller: VehicleController = field(init=False)
@@ -37,7 +39,7 @@ class Agent:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.dataplane = DataPlane(self.mission, self.mapmsg)
+        self.dataplane = DataPlane(self.mission, self.mapmsg, model=self.model)
         self.planner = Planner(self.mission)
         self.controller = VehicleController(self.mission.spec, self.mission.decision_interval_s)
 

@@ -377,7 +377,8 @@ def agreed_state(decision: Decision) -> SchedulerState:
     over: the starvation counters m their senders report for their own objects, and a
     round-robin cursor just before the first object of the group member the tick picks
     (``group[tick mod |group|]``), so agnostic's rotation moves on every interval
-    without a carried cursor, which would diverge between vehicles."""
+    without a carried cursor, which would diverge between vehicles; and the tick as the
+    key of a shuffled order (``agnostic-shuffle``)."""
     if len(decision.group) == 0:
         return SchedulerState()
     first = int(decision.group[decision.tick % len(decision.group)])
@@ -392,7 +393,8 @@ def agreed_state(decision: Decision) -> SchedulerState:
             starved += [(v, k, c) for k, c in zip(np.asarray(ids, dtype=np.int64).tolist(), counts) if c > 0]
     starved.sort(key=lambda s: (s[0], s[1]))  # SchedulerState keeps its keys ascending by (vid, object id); stable
     key = np.array([(v, k) for v, k, _ in starved], dtype=np.int64).reshape(-1, 2)
-    return SchedulerState(key, np.array([c for _, _, c in starved], dtype=np.int64), cursor=(first, _BEFORE_ANY_OBJECT))
+    return SchedulerState(key, np.array([c for _, _, c in starved], dtype=np.int64), cursor=(first, _BEFORE_ANY_OBJECT),
+                          order_key=decision.tick)
 
 
 def unscheduled_after(own: ControlMsg, sent: Iterable[int]) -> dict[int, int]:

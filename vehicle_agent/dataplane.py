@@ -17,11 +17,12 @@ import numpy as np
 from numba import njit
 
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
+from protocol.model import OURS, Model
 from vehicle_agent.agreement import HeardControl
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fused_now
-from vehicle_agent.payload import decode_objects, encode_objects, payload_size
+from vehicle_agent.payload import column_thinned, decode_objects, encode_objects, payload_size
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, extract_objects, scan_grid,
                                       scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
@@ -232,19 +233,23 @@ def lane_trajectory(route: np.ndarray, pose: Pose, speed_mps: float, t_now_s: fl
 
 class DataPlane:
     def __init__(self, mission: Mission, mapmsg: MapMsg, grid_spec: GridSpec | None = None,
-                 relevance_mode: str = "bool") -> None:
+                 relevance_mode: str = "bool", model: Model = OURS) -> None:
+        """``model``: what an object's shared points are, their bytes on the air and how
+        long a received object is held (``protocol.model``)."""
         self.mission = mission
+        self.model = model
         self.spec = grid_spec or GridSpec()
         self.mount_m = mission.lidar.mount_height_m
         self.raster = DrivableRaster(mapmsg.drivable, self.spec.cell_m)
         self.buildings = _box_corners(np.asarray(mapmsg.buildings, dtype=np.float64).reshape(-1, 6))
         self.tracker = Tracker()
         self.lanes = LaneDirections(mapmsg.lanes)
-        self.received = ReceivedStore()
+        self.received = ReceivedStore(max_age_s=model.hold_s)
         self.neighbors = NeighborTable()
         self.relevance_mode = relevance_mode
         self.timings_ms: dict[str, float] = {}
         self.shared_batch = SharedBatch.of([])  # this interval's received objects, placed, ourselves excluded
+        self._offered_cache: tuple[View, np.ndarray | None, np.ndarray] | None = None
         self._recent_poses: deque[Pose] = deque(maxlen=int(round(MAX_AGE_S / mission.decision_interval_s)) + 1)
 
     def _timed(self, stage: str) -> _Timed:
@@ -287,7 +292,7 @@ class DataPlane:
         receivers = neighbors.in_domain()
         dets = [t.detection for t in tracks]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
-        sizes = payload_size(np.array([len(d.points_world) for d in dets], dtype=np.int64))
+        sizes = payload_size(self._offered(view)[1], self.model.bytes_per_point)
         centroids = np.array([t.xy for t in tracks], dtype=np.float64).reshape(-1, 2)
         viewers = receivers.xy
         with self._timed("visibility"):
@@ -332,9 +337,16 @@ class DataPlane:
         with self._timed("encoding"):
             if not object_ids:
                 return {}
-            by_id = {t.track_id: t for t in view.tracks}
-            tracks = [by_id[oid] for oid in object_ids]
-            world = np.concatenate([t.detection.points_world for t in tracks]).astype(np.float64)
+            at = {t.track_id: k for k, t in enumerate(view.tracks)}
+            rows = [at[oid] for oid in object_ids]
+            tracks = [view.tracks[k] for k in rows]
+            points, counts = self._offered(view)
+            if points is None:
+                points_of = [t.detection.points_world for t in tracks]
+            else:
+                starts = np.cumsum(counts) - counts
+                points_of = [points[starts[k]:starts[k] + counts[k]] for k in rows]
+            world = np.concatenate(points_of).astype(np.float64)
             pts = world_to_sensor(world, view.pose, self.mount_m)
             centroids = world_to_sensor(np.array([[t.xy[0], t.xy[1], t.detection.centroid[2]] for t in tracks]),
                                         view.pose, self.mount_m)
@@ -342,8 +354,30 @@ class DataPlane:
                                      centroids.astype(np.float32),
                                      np.array([t.velocity for t in tracks]).astype(np.float32),
                                      pts.astype(np.float32),
-                                     np.array([len(t.detection.points_world) for t in tracks], dtype=np.int64))
+                                     np.array([len(p) for p in points_of], dtype=np.int64),
+                                     self.model.bytes_per_point)
         return dict(zip(object_ids, encoded))
+
+    def _offered(self, view: View) -> tuple[np.ndarray | None, np.ndarray]:
+        """The points each tracked object offers, in the view's track order: (None, each
+        track's point count) when it offers all of its points (our model), else (the kept
+        points, object after object, and their counts): ``payload.column_thinned``, worked
+        out once per view."""
+        cached = self._offered_cache
+        if cached is not None and cached[0] is view:
+            return cached[1], cached[2]
+        all_counts = np.array([len(t.detection.points_world) for t in view.tracks], dtype=np.int64)
+        if self.model.object_points == "all":
+            points, counts = None, all_counts
+        else:
+            stacked = np.concatenate([t.detection.points_world for t in view.tracks]) if view.tracks \
+                else np.zeros((0, 3))
+            keep = column_thinned(stacked, all_counts, self.model.column_m, self.model.ground_cut_m)
+            points = stacked[keep]
+            owner = np.repeat(np.arange(len(all_counts)), all_counts)[keep]
+            counts = np.bincount(owner, minlength=len(all_counts)).astype(np.int64)
+        self._offered_cache = (view, points, counts)
+        return points, counts
 
     def fuse(self, view: View, payloads: list[bytes]) -> tuple[FusedGrid, int]:
         """Merge this interval's receptions (and carried-forward older ones) into the grid.

@@ -19,6 +19,7 @@ from vehicle_agent.payload import ObjectBatch, ObjectPayload
 from vehicle_agent.perception import ABOVE, GROUND, Grid, exact_inverse
 
 MAX_AGE_S = 1.0
+SAME_INTERVAL_S = 1e-3  # an age below this is this interval's: the header's float32 time is off by ~1e-6 s
 SELF_SHARE = 0.3  # a received object with this share of its points on our own body is ourselves
 MERGED_SHARE = 0.05  # ... with this share, it merged us with something else: its velocity is ours
 BODY_MARGIN_M = 0.5  # a point this close to our body's box is on it
@@ -185,7 +186,9 @@ class ReceivedStore:
         """Forget the objects older than ``max_age_s`` at ``t_now_s``; the age of each
         object held."""
         age = t_now_s - self.t_sim_s
-        alive = ~(age > self.max_age_s)
+        # this interval's receptions stay whatever the float32 capture time's rounding says
+        # (a held time of 0 keeps exactly them: the paper's model, protocol.model)
+        alive = ~(age > self.max_age_s) | (age < SAME_INTERVAL_S)
         if not alive.all():  # their points stay in the pool until it is compacted
             self.key, self.t_sim_s, self.velocity_xy = self.key[alive], self.t_sim_s[alive], self.velocity_xy[alive]
             self.counts, self.starts, self.bounds = self.counts[alive], self.starts[alive], self.bounds[alive]

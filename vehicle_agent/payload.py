@@ -1,7 +1,9 @@
 """An object's point cloud as it leaves on the data channel.
 
-Layout (little-endian): a 64-byte header, then the points as int16 centimetres
-relative to the object's centroid in the sender's sensor frame (6 bytes per point).
+Layout (little-endian): a 64-byte header, then the points relative to the object's
+centroid in the sender's sensor frame, in one of two codings the header's version
+names: int16 centimetres (version 1, 6 bytes per point; our model's) or three float64
+(version 2, 24 bytes per point; the paper's model, its authors' point format).
 Rounding to the centimetre bounds the error at 0.5 cm per axis (0.87 cm in 3-D); int16
 spans +-327 m, far beyond the LiDAR range. The header carries the sender's pose (T_s)
 and mount height so the receiver can apply V_r = T_r^-1 T_s V_s, and the object's
@@ -23,10 +25,13 @@ from protocol.codec import MalformedMessage
 from protocol.messages import Pose
 
 MAGIC = b"ACOB"
-VERSION = 1
+VERSION = 1  # int16 centimetres
+VERSION_F64 = 2  # float64 metres
 _HEADER = struct.Struct("<4sBxHIiffffffffff8x")  # 64 bytes
 HEADER_BYTES = _HEADER.size
 BYTES_PER_POINT = 6
+BYTES_PER_POINT_F64 = 24
+VERSION_OF = {BYTES_PER_POINT: VERSION, BYTES_PER_POINT_F64: VERSION_F64}  # by bytes per point
 MAX_ERROR_M = 0.005 * np.sqrt(3)
 
 
@@ -43,8 +48,9 @@ class ObjectPayload:
     points_sensor: np.ndarray  # float32 (n, 3), sender's sensor frame
 
 
-def payload_size(n_points: int) -> int:
-    return HEADER_BYTES + BYTES_PER_POINT * n_points
+def payload_size(n_points, bytes_per_point: int = BYTES_PER_POINT):
+    """The payload's length in bytes for ``n_points`` (an int or an int array)."""
+    return HEADER_BYTES + bytes_per_point * n_points
 
 
 def encode_object(obj: ObjectPayload) -> bytes:
@@ -59,13 +65,25 @@ def encode_object(obj: ObjectPayload) -> bytes:
 
 def encode_objects(sender: int, tick: int, t_sim_s: float, pose: Pose, mount_height_m: float,
                    object_ids: list[int], centroids: np.ndarray, velocities: np.ndarray, points: np.ndarray,
-                   counts: np.ndarray) -> list[bytes]:
+                   counts: np.ndarray, bytes_per_point: int = BYTES_PER_POINT) -> list[bytes]:
     """``encode_object`` of each object of one sender and tick, its points the next
     ``counts[k]`` rows of ``points`` (float32, sensor frame), with its ``centroids[k]``
     (float32) and ``velocities[k]`` (float32): the same bytes, the points' arithmetic
-    done for all objects at once (one numpy call per step, not per step and object)."""
-    rel_cm = np.rint((points - np.repeat(centroids, counts, axis=0)) * 100.0)
+    done for all objects at once (one numpy call per step, not per step and object).
+    ``bytes_per_point=24``: the points as float64 offsets from the centroid (version 2)."""
     starts = np.cumsum(counts) - counts
+    if bytes_per_point == BYTES_PER_POINT_F64:
+        body = (points.astype(np.float64) - np.repeat(centroids, counts, axis=0).astype(np.float64)).astype("<f8")
+        out = []
+        for oid, start, n, c, v in zip(object_ids, starts.tolist(), counts.tolist(), centroids.tolist(),
+                                       velocities.tolist()):
+            header = _HEADER.pack(MAGIC, VERSION_F64, sender, oid, tick, t_sim_s, pose.x_m, pose.y_m, pose.yaw_rad,
+                                  mount_height_m, *c, *v)
+            out.append(header + body[start:start + n].tobytes())
+        return out
+    if bytes_per_point != BYTES_PER_POINT:
+        raise ValueError(f"bytes_per_point: {bytes_per_point} is not {BYTES_PER_POINT} or {BYTES_PER_POINT_F64}")
+    rel_cm = np.rint((points - np.repeat(centroids, counts, axis=0)) * 100.0)
     if rel_cm.size:  # each object's largest offset, NaN if it has one, as np.max gives it
         widest = np.maximum.reduceat(np.abs(rel_cm).max(axis=1), starts[counts > 0])
         if (widest > 32767).any():
@@ -82,10 +100,11 @@ def encode_objects(sender: int, tick: int, t_sim_s: float, pose: Pose, mount_hei
 
 def header_of(payload: bytes) -> tuple[int, int, int] | None:
     """(sender, object id, tick) from a payload's header; None if it has no valid one."""
-    if len(payload) < HEADER_BYTES or (len(payload) - HEADER_BYTES) % BYTES_PER_POINT:
+    if len(payload) < HEADER_BYTES:
         return None
     head = _HEADER.unpack_from(payload)
-    if head[0] != MAGIC or head[1] != VERSION:
+    per_point = _BYTES_PER_POINT_OF.get(head[1])
+    if head[0] != MAGIC or per_point is None or (len(payload) - HEADER_BYTES) % per_point:
         return None
     return head[2], head[3], head[4]
 
@@ -94,14 +113,20 @@ def decode_object(payload: bytes) -> ObjectPayload:
     if len(payload) < HEADER_BYTES:
         raise MalformedMessage(f"object payload of {len(payload)} bytes is shorter than its header")
     magic, version, sender, oid, tick, t, x, y, yaw, mount, cx, cy, cz, vx, vy = _HEADER.unpack_from(payload)
-    if magic != MAGIC or version != VERSION:
-        raise MalformedMessage(f"not an object payload v{VERSION} (magic {magic!r}, version {version})")
+    per_point = _BYTES_PER_POINT_OF.get(version)
+    if magic != MAGIC or per_point is None:
+        raise MalformedMessage(f"not an object payload v{VERSION} or v{VERSION_F64} (magic {magic!r}, "
+                               f"version {version})")
     body = len(payload) - HEADER_BYTES
-    if body % BYTES_PER_POINT:
+    if body % per_point:
         raise MalformedMessage(f"object payload body of {body} bytes is not whole points")
     centroid = np.array([cx, cy, cz], dtype=np.float32)
-    rel = np.frombuffer(payload, dtype="<i2", offset=HEADER_BYTES).reshape(-1, 3)
-    points = rel.astype(np.float32) / 100.0 + centroid
+    if version == VERSION_F64:
+        rel64 = np.frombuffer(payload, dtype="<f8", offset=HEADER_BYTES).reshape(-1, 3)
+        points = (rel64 + centroid.astype(np.float64)).astype(np.float32)
+    else:
+        rel = np.frombuffer(payload, dtype="<i2", offset=HEADER_BYTES).reshape(-1, 3)
+        points = rel.astype(np.float32) / 100.0 + centroid
     return ObjectPayload(sender, oid, tick, t, Pose(x, y, yaw), mount, centroid, np.array([vx, vy], np.float32), points)
 
 
@@ -149,41 +174,53 @@ def decode_objects(payloads: list[bytes]) -> tuple[ObjectBatch, int]:
     ``struct`` call or a dozen numpy calls per field."""
     lengths = np.fromiter(map(len, payloads), dtype=np.int64, count=len(payloads))
     raw = np.frombuffer(b"".join(payloads), dtype=np.uint8)
-    head, body_starts, counts = _headers(raw, lengths, _MAGIC, VERSION)
+    head, body_starts, counts = _headers(raw, lengths, _MAGIC, VERSION, VERSION_F64)
     # the header's float32 fields from t_sim_s on (_HEADER), one row per field:
     # t, x, y, yaw, mount, centroid (3), velocity (2)
     f32 = head.view("<f4")
     fields = f32[:, 4:14].T.astype(np.float64, order="C")
-    points = _points_of(raw, body_starts, counts, np.ascontiguousarray(f32[:, 9:12]), _METRES_OF)
+    wide = head[:, len(MAGIC)] == VERSION_F64
+    centroid = np.ascontiguousarray(f32[:, 9:12])
+    points = _points_of(raw, body_starts, counts, centroid, _METRES_OF, wide)
+    if wide.any():  # float64 bodies (the paper's model): a few numpy calls per payload
+        starts = np.cumsum(counts) - counts
+        for k in np.flatnonzero(wide).tolist():
+            rel = np.frombuffer(raw, dtype="<f8", count=3 * int(counts[k]), offset=int(body_starts[k]))
+            points[starts[k]:starts[k] + counts[k]] = rel.reshape(-1, 3) + centroid[k].astype(np.float64)
     batch = ObjectBatch(head.view("<u2")[:, 3].astype(np.int64), head.view("<u4")[:, 2].astype(np.int64),
                         fields[0], fields[1:4].T, fields[4], fields[8:10].T, points, counts)
     return batch, len(payloads) - len(counts)
 
 
 _MAGIC = np.frombuffer(MAGIC, dtype=np.uint8)
+_BYTES_PER_POINT_OF = {VERSION: BYTES_PER_POINT, VERSION_F64: BYTES_PER_POINT_F64}
 
 
 @njit(cache=True)
-def _headers(raw, lengths, magic, version):
+def _headers(raw, lengths, magic, version, version_f64):
     """Of the payloads of ``lengths`` bytes joined in ``raw``: the ``HEADER_BYTES``
-    header of each well-formed one (whole points, ``magic`` and ``version`` as
-    ``decode_object`` checks them), one row each, where its points start, and how many
-    it has."""
+    header of each well-formed one (``magic``, ``version`` or ``version_f64``, whole
+    points of its version's size, as ``decode_object`` checks them), one row each,
+    where its points start, and how many it has."""
     head = np.empty((len(lengths), HEADER_BYTES), dtype=np.uint8)
     body_starts = np.empty(len(lengths), dtype=np.int64)
     counts = np.empty(len(lengths), dtype=np.int64)
     k = start = 0
     for i in range(len(lengths)):
         size = lengths[i]
-        ok = size >= HEADER_BYTES and (size - HEADER_BYTES) % BYTES_PER_POINT == 0
+        ok = size >= HEADER_BYTES
+        per_point = BYTES_PER_POINT
         if ok:
             for b in range(len(magic)):
                 ok = ok and raw[start + b] == magic[b]
-            ok = ok and raw[start + len(magic)] == version
+            v = raw[start + len(magic)]
+            if v == version_f64:
+                per_point = BYTES_PER_POINT_F64
+            ok = ok and (v == version or v == version_f64) and (size - HEADER_BYTES) % per_point == 0
         if ok:
             head[k] = raw[start:start + HEADER_BYTES]
             body_starts[k] = start + HEADER_BYTES
-            counts[k] = (size - HEADER_BYTES) // BYTES_PER_POINT
+            counts[k] = (size - HEADER_BYTES) // per_point
             k += 1
         start += size
     return head[:k], body_starts[:k], counts[:k]
@@ -196,15 +233,19 @@ _METRES_OF = np.arange(1 << 16, dtype=np.uint16).view(np.int16).astype(np.float3
 
 
 @njit(cache=True)
-def _points_of(raw, body_starts, counts, centroid, metres_of):
+def _points_of(raw, body_starts, counts, centroid, metres_of, skip):
     """The points of the payloads whose bodies start at ``body_starts`` in the joined
     bytes ``raw``, one payload after the other: ``decode_object``'s
     ``rel.astype(np.float32) / 100.0 + centroid`` (float32 all through; ``metres_of``:
     ``_METRES_OF``). Replaces joining the bodies into a second buffer and repeating every
-    centroid per point."""
+    centroid per point. The rows of a payload where ``skip`` (float64 bodies) are left
+    for the caller."""
     out = np.empty((counts.sum(), 3), dtype=np.float32)
     q = 0
     for k in range(len(counts)):
+        if skip[k]:
+            q += counts[k]
+            continue
         o = body_starts[k]
         for _ in range(counts[k]):
             for c in range(3):
@@ -217,6 +258,34 @@ def _points_of(raw, body_starts, counts, centroid, metres_of):
 def warm_kernels() -> None:
     """Load this module's kernels with the argument types ``decode_objects`` passes (the
     joined bytes read-only, as ``np.frombuffer`` gives them)."""
-    _headers(np.frombuffer(bytes(HEADER_BYTES), dtype=np.uint8), np.array([HEADER_BYTES]), _MAGIC, VERSION)
+    _headers(np.frombuffer(bytes(HEADER_BYTES), dtype=np.uint8), np.array([HEADER_BYTES]), _MAGIC, VERSION,
+             VERSION_F64)
     _points_of(np.frombuffer(bytes(6), dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64),
-               np.zeros((1, 3), dtype=np.float32), _METRES_OF)
+               np.zeros((1, 3), dtype=np.float32), _METRES_OF, np.zeros(1, dtype=np.bool_))
+
+
+def column_thinned(points: np.ndarray, counts: np.ndarray, column_m: float, ground_cut_m: float) -> np.ndarray:
+    """bool (N,): the points an object offers under the paper's model. Of each object's
+    points (object k's the ``counts[k]`` rows after object k-1's; world frame, z the
+    height above the ground) one point per column of ``column_m`` x ``column_m`` (the
+    first in the object's own order), then those of them higher than ``ground_cut_m``:
+    its authors thin first and cut the ground after (``docs/models.md``). A point with
+    a non-finite coordinate is never kept."""
+    n = len(points)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    owner = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
+    with np.errstate(invalid="ignore"):
+        ix, iy = np.floor(points[:, 0] / column_m), np.floor(points[:, 1] / column_m)
+        finite = np.isfinite(ix) & np.isfinite(iy) & np.isfinite(points[:, 2])
+    ix = np.where(finite, ix, 0.0).astype(np.int64)
+    iy = np.where(finite, iy, 0.0).astype(np.int64)
+    order = np.lexsort((iy, ix, owner))  # stable: within a column, the object's own order
+    o, a, b = owner[order], ix[order], iy[order]
+    first = np.ones(n, dtype=bool)
+    first[1:] = (o[1:] != o[:-1]) | (a[1:] != a[:-1]) | (b[1:] != b[:-1])
+    keep[order[first]] = True
+    with np.errstate(invalid="ignore"):
+        keep &= finite & (points[:, 2] > ground_cut_m)
+    return keep

@@ -17,6 +17,7 @@ import time
 
 from deploy.procs import ProcessManager, ProcSpec
 from protocol import keys
+from protocol.model import ModelError, add_model_args, lidar_config, model_from
 from protocol.security import Verifier
 from protocol.session import DEFAULT_HUB, ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 from protocol.shm import add_shm_arg
@@ -60,6 +61,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          "the vehicle's own certificate (docs/security.md)")
     ap.add_argument("--json", action="store_true", help="end with the outcome as one JSON line")
     ap.add_argument("--log-level", default="INFO")
+    add_model_args(ap)
     add_shm_arg(ap)
     add_zenoh_args(ap)
     return ap.parse_args(argv)
@@ -96,8 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s world %(levelname)s %(message)s")
     try:
         params = scenario_params(args)
-        sim = Simulation(params)
-    except (ScenarioError, OSError) as exc:
+        sim = Simulation(params, lidar_config(model_from(args)))
+    except (ScenarioError, ModelError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     run_id = args.run_id or time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)

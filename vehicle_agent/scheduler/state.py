@@ -27,11 +27,14 @@ def _no_counts() -> np.ndarray:
 class SchedulerState:
     """``starved_key`` (S, 2) (vid, object id), ascending, with ``starved_m`` (S,): the
     objects skipped for m >= 1 intervals while still occluded and relevant to someone.
-    ``cursor``: the key of the last object sent, from which round robin continues."""
+    ``cursor``: the key of the last object sent, from which round robin continues.
+    ``order_key``: what a shuffled order is drawn from (the tick, agreed by the group),
+    so that every vehicle that schedules the same instance draws the same order."""
 
     starved_key: np.ndarray = field(default_factory=_no_keys)
     starved_m: np.ndarray = field(default_factory=_no_counts)
     cursor: ObjectKey | None = None
+    order_key: int = 0
 
     def __post_init__(self) -> None:
         self.starved_key.setflags(write=False)
@@ -42,6 +45,7 @@ class SchedulerState:
             return NotImplemented
         return (
             self.cursor == other.cursor
+            and self.order_key == other.order_key
             and np.array_equal(self.starved_key, other.starved_key)
             and np.array_equal(self.starved_m, other.starved_m)
         )

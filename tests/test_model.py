@@ -1,0 +1,124 @@
+"""The modelling profiles (protocol.model) and what each setting changes, by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deploy import table
+from deploy.run import InputError, options_from, parse_args
+from protocol.messages import Pose
+from protocol.model import OURS, PAPER, ModelError, lidar_config, resolve
+from vehicle_agent.__main__ import scheduler_of
+from vehicle_agent.fusion import ReceivedStore
+from vehicle_agent.payload import (HEADER_BYTES, column_thinned, decode_object, decode_objects, encode_objects,
+                                   payload_size)
+from vehicle_agent.scheduler import SchedulerState, SenderOffers, get, make_instance
+from vehicle_agent.scheduler.agnostic import shuffled_order
+
+
+def test_profiles_and_settings_alone():
+    assert resolve() == OURS and resolve("paper") == PAPER
+    assert (PAPER.bytes_per_point, PAPER.hold_s, PAPER.fill_spare, PAPER.group_size) == (24, 0.0, False, 0)
+    m = resolve("paper", ["hold_s=1.0", "fill_spare=true"])
+    assert m.hold_s == 1.0 and m.fill_spare and m.bytes_per_point == 24
+    assert m.label() == "paper+fill_spare=true+hold_s=1.0"
+    assert resolve(m.args()[1], m.args()[3::2]) == m  # what another process is told resolves to the same
+    assert resolve("ours", {"agnostic_order": "shuffle"}).differences() == {"agnostic_order": "shuffle"}
+    lidar = lidar_config(PAPER)
+    assert (lidar.range_m, lidar.fov_up_deg, lidar.fov_down_deg, lidar.beams) == (50.0, 4.0, -20.0, 64)
+
+
+@pytest.mark.parametrize("name, sets, field", [
+    ("nope", [], "model"), ("paper", ["hold_s"], "model_set"), ("paper", ["hold=1"], "hold"),
+    ("paper", ["hold_s=-1"], "hold_s"), ("paper", ["hold_s=x"], "hold_s"), ("ours", ["bytes_per_point=8"],
+                                                                          "bytes_per_point"),
+    ("ours", ["fill_spare=maybe"], "fill_spare"), ("ours", ["group_size=1.5"], "group_size"),
+    ("ours", ["object_points=some"], "object_points"), ("ours", ["lidar_fov_up_deg=-30"], "lidar_fov_up_deg"),
+])
+def test_a_bad_setting_names_its_field(name, sets, field):
+    with pytest.raises(ModelError, match=f"^{field}:"):
+        resolve(name, sets)
+
+
+def test_the_launcher_refuses_a_bad_model_and_passes_a_good_one_to_every_process(tmp_path):
+    with pytest.raises(InputError, match="^hold_s:"):
+        options_from(parse_args(["--out", str(tmp_path), "--model", "paper", "--model-set", "hold_s=-2"]),
+                     hub="tcp/127.0.0.1:1")
+    opts = options_from(parse_args(["--out", str(tmp_path), "--model", "paper", "--model-set", "hold_s=0.5",
+                                    "--vehicles", "3"]), hub="tcp/127.0.0.1:1")
+    cfg = opts.run
+    assert cfg.channel_profile == "lte-direct-100ms"  # the model's radio, as no flag named one
+    for spec in table.processes(cfg):
+        if spec.name in (table.WORLD,) or spec.name.startswith("agent"):
+            argv = list(spec.args)
+            assert argv[argv.index("--model") + 1] == "paper"
+            assert argv[argv.index("--model-set") + 1] == "hold_s=0.5"
+        if spec.name == table.RECORDER:
+            assert "model=paper+hold_s=0.5" in spec.args
+    own = options_from(parse_args(["--out", str(tmp_path), "--model", "paper", "--channel-profile", "lte-direct"]),
+                       hub="tcp/127.0.0.1:1")
+    assert own.run.channel_profile == "lte-direct"  # a run's own radio wins over the model's
+
+
+def test_column_thinning_by_hand():
+    # object 0: two points in column (0, 0), then column (1, 0) whose first point is ground
+    # (thinned first, cut after: the whole column goes); object 1: one point in (0, 0)
+    pts = np.array([[0.01, 0.01, 1.0], [0.02, 0.03, 2.0], [0.06, 0.0, 0.3], [0.07, 0.01, 1.0],
+                    [0.01, 0.01, 1.0], [np.nan, 0.0, 1.0]])
+    keep = column_thinned(pts, np.array([4, 2]), 0.05, 0.5)
+    assert keep.tolist() == [True, False, False, False, True, False]
+    assert not column_thinned(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0.05, 0.5).any()
+
+
+def test_float64_payloads_round_trip_beside_int16_ones():
+    pose = Pose(10.0, -5.0, 0.3)
+    pts = np.array([[1.234567, 2.5, 0.7], [1.5, 2.25, 1.1], [3.0, 1.0, 0.6]], dtype=np.float32)
+    centroid = np.array([[1.5, 2.0, 0.8], [3.0, 1.0, 0.6]], dtype=np.float32)
+    velocity = np.zeros((2, 2), dtype=np.float32)
+    counts = np.array([2, 1])
+    wide = encode_objects(1, 7, 0.7, pose, 1.9, [4, 5], centroid, velocity, pts, counts, bytes_per_point=24)
+    narrow = encode_objects(1, 7, 0.7, pose, 1.9, [4, 5], centroid, velocity, pts, counts)
+    assert [len(p) for p in wide] == [payload_size(2, 24), payload_size(1, 24)] == [HEADER_BYTES + 48, HEADER_BYTES + 24]
+    assert [len(p) for p in narrow] == [HEADER_BYTES + 12, HEADER_BYTES + 6]
+    one = decode_object(wide[0])
+    np.testing.assert_allclose(one.points_sensor, pts[:2], atol=1e-6)  # float64 offsets: no centimetre rounding
+    batch, bad = decode_objects([narrow[0], wide[0], b"junk", wide[1], narrow[1]])
+    assert bad == 1 and batch.object_id.tolist() == [4, 4, 5, 5] and batch.counts.tolist() == [2, 2, 1, 1]
+    singles = np.concatenate([decode_object(p).points_sensor for p in (narrow[0], wide[0], wide[1], narrow[1])])
+    assert np.array_equal(batch.points_sensor, singles)
+
+
+def _instance(n_senders=3, per_sender=4, size=3000):
+    offers = {v: SenderOffers(np.arange(per_sender), np.full(per_sender, size), np.array([9]),
+                              np.zeros((per_sender, 1)), np.ones((per_sender, 1))) for v in range(n_senders)}
+    return make_instance(offers, lambda i, j: 1.0, vids=[*range(n_senders), 9])
+
+
+def test_the_shuffle_is_a_permutation_drawn_alike_and_new_every_interval():
+    inst = _instance()
+    a, b = shuffled_order(inst, 11), shuffled_order(inst, 11)
+    assert np.array_equal(a, b) and sorted(a.tolist()) == list(range(inst.n_objects))
+    orders = {tuple(shuffled_order(inst, k).tolist()) for k in range(20)}
+    assert len(orders) > 15  # 12! orders: twenty intervals all but never repeat one
+    sched = get("agnostic-shuffle")(inst, SchedulerState(order_key=11))
+    # ten 9000 B frames (10 ms at 7.2 Mbps) of 3000 B objects: three a frame, in the drawn order
+    assert [list(f) for f in sched.frames][:4] == [sorted(a[3 * n:3 * n + 3].tolist()) for n in range(4)]
+
+
+def test_each_model_picks_its_schemes_schedulers():
+    assert scheduler_of("agnostic") == "agnostic" and scheduler_of("autocast") == "autocast"
+    assert scheduler_of("agnostic", PAPER) == "agnostic-shuffle" and scheduler_of("autocast", PAPER) == "greedy"
+    assert scheduler_of("autocast-fptas", PAPER) == "autocast-fptas"
+
+
+def test_a_zero_hold_keeps_this_intervals_receptions_only():
+    pose = Pose(0.0, 0.0, 0.0)
+    pts = np.ones((3, 3), dtype=np.float32)
+    store = ReceivedStore(max_age_s=0.0)
+    t = 7.1  # float32(7.1) < 7.1: a fresh reception's age comes out ~1e-7 s, not 0
+    raw = encode_objects(2, 71, t, pose, 1.9, [1], np.ones((1, 3), np.float32), np.zeros((1, 2), np.float32), pts,
+                         np.array([3]))
+    store.add_batch(decode_objects(raw)[0])
+    assert len(store.current(t)) == 1
+    assert len(store.current(t + 0.1)) == 0  # one interval later it is gone: no coasting

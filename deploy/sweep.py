@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import hashlib
 import itertools
 import json
 import logging
@@ -84,9 +85,16 @@ class SweepSpec:
     scans: str = "none"  # LiDAR scans the recorder keeps; the report needs none of them
     mcap_limit_mb: float = 200.0  # a run's MCAP larger than this is deleted (EMP logs every point cloud)
     json_mirror: bool = False  # each run's recorder writes the JSON mirror too (half its CPU; the report reads none)
+    model: str = "ours"  # the modelling profile of every run (protocol.model, docs/models.md)
+    model_settings: tuple[tuple[str, Any], ...] = ()  # settings changed on top of it, (name, value) pairs
 
     def size(self) -> int:
         return math.prod(len(getattr(self, a)) for a in AXES)
+
+    def resolved_model(self):
+        from protocol.model import resolve
+
+        return resolve(self.model, dict(self.model_settings))
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -111,12 +119,19 @@ class RunKey:
     scheme: str
     seed: int
     duration_s: float
+    model: str = "ours"  # the model's label (``Model.label``): ``paper``, ``paper+hold_s=1.0``
 
     @property
     def name(self) -> str:
-        """Readable and a valid run id: ``left_turn-v10-c30-d-1-autocast-s0-t20`` (0.5 -> 0p5)."""
-        return (f"{self.scenario}-v{self.vehicles}-c{_num(self.collider_speed_kmh)}-d{_num(self.delta_s)}"
+        """Readable and a valid run id: ``left_turn-v10-c30-d-1-autocast-s0-t20`` (0.5 -> 0p5);
+        under another model than ours ``...-t20-mpaper`` (settings changed on top of a
+        profile: a short hash of the label, ``-mpaper-3f2a9c1d``)."""
+        base = (f"{self.scenario}-v{self.vehicles}-c{_num(self.collider_speed_kmh)}-d{_num(self.delta_s)}"
                 f"-{self.scheme}-s{self.seed}-t{_num(self.duration_s)}")
+        if self.model == "ours":
+            return base
+        name, _, extra = self.model.partition("+")
+        return f"{base}-m{name}" + (f"-{hashlib.sha256(extra.encode()).hexdigest()[:8]}" if extra else "")
 
     def run_flags(self) -> list[str]:
         return ["--scenario", self.scenario, "--vehicles", str(self.vehicles),
@@ -139,7 +154,8 @@ def expand(spec: SweepSpec) -> list[RunKey]:
     """The runs, seed by seed, densities ascending, every scheme of a configuration
     together: a sweep stopped early holds comparable schemes, the slow 40-vehicle
     runs last within a seed."""
-    return [RunKey(sc, n, v, d, scheme, seed, spec.duration_s or time_limit_s(sc))
+    model = spec.resolved_model().label()
+    return [RunKey(sc, n, v, d, scheme, seed, spec.duration_s or time_limit_s(sc), model)
             for seed, n, sc, v, d, scheme in itertools.product(
                 spec.seeds, sorted(spec.vehicles), spec.scenarios, spec.collider_speeds_kmh, spec.deltas_s,
                 spec.schemes)]
@@ -202,6 +218,17 @@ def spec_from(values: Mapping[str, Any], name: str) -> SweepSpec:
         if values["scans"] not in SCANS:
             raise SweepError(f"scans: {values['scans']!r} is not one of {', '.join(SCANS)}")
         out["scans"] = values["scans"]
+    if "model" in values or "model_settings" in values:
+        from protocol.model import ModelError, resolve
+
+        model, settings = values.get("model", "ours"), values.get("model_settings", {})
+        if not isinstance(settings, Mapping):
+            raise SweepError(f"model_settings: {settings!r} is not a table of settings")
+        try:
+            resolve(model, settings)
+        except ModelError as exc:
+            raise SweepError(str(exc)) from None
+        out["model"], out["model_settings"] = model, tuple(sorted(settings.items()))
     return SweepSpec(**out)
 
 
@@ -259,6 +286,16 @@ def narrowed(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
                 raise SweepError(f"{key}: {text!r} is not a number") from None
     if args.scans is not None:
         out["scans"] = args.scans
+    if args.model is not None:
+        out["model"] = args.model
+    if args.model_set:
+        settings = dict(out.get("model_settings") or {})
+        for text in args.model_set:
+            key, sep, value = text.partition("=")
+            if not sep:
+                raise SweepError(f"model_set: {text!r} is not KEY=VALUE")
+            settings[key.strip()] = value.strip()
+        out["model_settings"] = settings
     if args.json_mirror:
         out["json_mirror"] = True
     return out
@@ -355,7 +392,7 @@ def calibration(records: Iterable[dict[str, Any]]) -> tuple[float, int]:
     ratios = []
     for r in records:
         if r.get("status") == "judged" and r.get("wall_total_s") and r.get("alone", True):
-            key = RunKey(**{f.name: r[f.name] for f in fields(RunKey)})
+            key = RunKey(**{f.name: r.get(f.name, f.default) for f in fields(RunKey)})
             ratios.append(r["wall_total_s"] / estimate_run_s(key))
     if len(ratios) < MIN_CALIBRATION_RUNS:
         return 1.0, len(ratios)
@@ -698,7 +735,7 @@ def launcher_args(spec: SweepSpec, key: RunKey, run_id: str, runs_dir: Path, war
     return ["run", *key.run_flags(), "--json", "--out", str(runs_dir), "--run-id", run_id, "--scans", spec.scans,
             "--timeout-s", repr(spec.timeout_s), "--agent-timeout-s", repr(spec.agent_timeout_s),
             "--log-level", "WARNING", *(["--no-warm-up"] if warm else []),
-            *([] if spec.json_mirror else ["--no-json-mirror"])]
+            *([] if spec.json_mirror else ["--no-json-mirror"]), *spec.resolved_model().args()]
 
 
 def limit_mcap(run_dir: Path, limit_mb: float) -> dict[str, Any]:
@@ -782,6 +819,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                      help="each run's MCAP gets the JSON mirror too, for Foxglove (default: without; "
                           "`autocast export --foxglove` writes it for one run later)")
     nar.add_argument("--mcap-limit-mb", metavar="MB", help="delete a run's MCAP beyond this size (default 200)")
+    nar.add_argument("--model", help="the modelling profile of every run: ours (default) | paper (docs/models.md)")
+    nar.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                     help="change one setting of the model (repeatable)")
     ap.add_argument("--out", type=Path, help="the sweep directory (default runs/sweeps/<preset or file name>); "
                     "the same directory again resumes")
     ap.add_argument("--jobs", type=int, default=1, help="runs at once (default 1, see docs/experiments.md)")
@@ -811,7 +851,8 @@ def plan_text(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], records: 
     lines = [f"plan {spec.name!r}: {len(keys)} runs = {dims}",
              f"  scenarios {', '.join(spec.scenarios)}; collider speeds {', '.join(f'{v:g}' for v in spec.collider_speeds_kmh)} km/h;"
              f" deltas {', '.join(f'{v:g}' for v in spec.deltas_s)} s; vehicles {', '.join(map(str, spec.vehicles))};"
-             f" schemes {', '.join(spec.schemes)}; seeds {', '.join(map(str, spec.seeds))}; {_sim_limits(spec)}",
+             f" schemes {', '.join(spec.schemes)}; seeds {', '.join(map(str, spec.seeds))}; {_sim_limits(spec)};"
+             f" model {spec.resolved_model().label()}",
              f"  {'vehicles':>8} {'runs':>6} {'to run':>7} {'est. per run':>13} {'est. to run':>12}"]
     scale, measured = calibration(records.values())
     for n in sorted(spec.vehicles):
@@ -851,7 +892,8 @@ def main(argv: list[str] | None = None) -> int:
     except SweepError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    out = args.out or Path("runs") / "sweeps" / spec.name
+    label = spec.resolved_model().label()
+    out = args.out or Path("runs") / "sweeps" / (spec.name if label == "ours" else f"{spec.name}-{keys[0].name.split('-m', 1)[1]}")
     records = latest(read_results(out / RESULTS))
     todo = [k for k in keys if k.name not in records
             or (args.retry_failed and records[k.name]["status"] == "failed")]

@@ -11,6 +11,9 @@ Writes into ``SWEEP_DIR/report/`` (``--out``):
 - ``reaction_closest.png``: reaction time and closest distance per scenario and scheme
 - ``scheduled_delay.png``: when each transmitted object arrived in its interval vs its
   reward (paper: "Scheduled delay", 20 vehicles)
+- ``load_vs_density.png``: offered load over the channel's capacity, and the collider's
+  delivery to the ego beside its visibility, vs density (``deploy.load``; each run's
+  figures cached in ``SWEEP_DIR/report/load/<run id>.json``)
 - ``summary.md``: the tables, with "safe passage % by scheme x density"
 
 A plot without data says so instead of failing. Exit code 0, or 2 when the directory
@@ -47,7 +50,10 @@ OUTCOME_COLOR = {"safe": "tab:green", "near_miss": "gold", "crash": "tab:red", "
 VISIBILITY_SCENARIO = "red_light"  # the paper's collider-visibility figure uses scenario C
 DELAY_VEHICLES = 20  # the paper's scheduled-delay figure: 20 cars
 FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "reaction_closest.png",
-           "scheduled_delay.png")
+           "scheduled_delay.png", "load_vs_density.png")
+NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
+DEFAULT_MODEL = "ours"  # a record without a "model" field
+LOAD_CACHE_VERSION = 1  # bump when deploy.load's figures change meaning
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
 
@@ -148,9 +154,7 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     sender's control message of that interval (``net/ctrl/tx``: the object's v and r).
     Control messages this build cannot read (a log of an earlier message version, say)
     leave their objects out, and the run's count of them is logged as a warning."""
-    from mcap.reader import make_reader
-
-    from deploy.recorder import JSON_PREFIX
+    from deploy.load import raw_messages
     from protocol.codec import decode
     from protocol.messages import ChannelStats, ControlMsg
     from protocol.security import opened
@@ -158,28 +162,21 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     offers: dict[tuple[int, int], dict[int, tuple[float, int]]] = {}
     played: dict[tuple[int, int, int], list[float]] = {}
     unread: list[Exception] = []
-    with open(mcap_path, "rb") as f:
-        reader = make_reader(f)
-        topics = [ch.topic for ch in reader.get_summary().channels.values()  # the raw channels, not the JSON mirror
-                  if not ch.topic.startswith(JSON_PREFIX)
-                  and ("/net/ctrl/tx/" in ch.topic or ch.topic.endswith("/net/stats"))]
-        if not any(t.endswith("/net/stats") for t in topics):
-            return []
-        for _, channel, message in reader.iter_messages(topics=topics):
-            try:
-                msg = opened(decode(message.data))  # a signed control message: its body
-            except Exception as exc:  # a malformed payload the recorder kept; the rest still counts
-                if "/net/ctrl/tx/" in channel.topic:
-                    unread.append(exc)
-                continue
-            if isinstance(msg, ControlMsg):
-                o = msg.objects
-                reward = ((1.0 - o.visibility.astype(np.float64)) * o.relevance).sum(axis=1) if len(o.object_id) else []
-                offers[(msg.tick, msg.vid)] = {int(k): (float(h), int(s))
-                                               for k, h, s in zip(o.object_id, reward, o.size_bytes)}
-            elif isinstance(msg, ChannelStats):
-                for sender, oid, _start_s, rx_s, *_ in (msg.stats.get("data") or {}).get("objects", []):
-                    played.setdefault((msg.tick, int(sender), int(oid)), []).append(float(rx_s))
+    for topic, payload in raw_messages(mcap_path, lambda t: "/net/ctrl/tx/" in t or t.endswith("/net/stats")):
+        try:
+            msg = opened(decode(payload))  # a signed control message: its body
+        except Exception as exc:  # a malformed payload the recorder kept; the rest still counts
+            if "/net/ctrl/tx/" in topic:
+                unread.append(exc)
+            continue
+        if isinstance(msg, ControlMsg):
+            o = msg.objects
+            reward = ((1.0 - o.visibility.astype(np.float64)) * o.relevance).sum(axis=1) if len(o.object_id) else []
+            offers[(msg.tick, msg.vid)] = {int(k): (float(h), int(s))
+                                           for k, h, s in zip(o.object_id, reward, o.size_bytes)}
+        elif isinstance(msg, ChannelStats):
+            for sender, oid, _start_s, rx_s, *_ in (msg.stats.get("data") or {}).get("objects", []):
+                played.setdefault((msg.tick, int(sender), int(oid)), []).append(float(rx_s))
     if unread:
         log.warning("%s: %d control messages unreadable (%s); their objects are left out of the delay table",
                     mcap_path, len(unread), unread[0])
@@ -304,6 +301,116 @@ def delay_table(by_scheme: dict[str, tuple[int, list[Sent]]]) -> dict[str, Delay
         groups = tuple((g.label, float(np.median(g.delays_ms)), len(g.delays_ms)) for g in reward_groups(sent))
         out[scheme] = DelayRow(runs, len(sent), spearman([s.reward for s in sent], [s.delay_s for s in sent]), groups)
     return out
+
+
+# ---------------------------------------------------------------------------- offered load (deploy.load)
+
+
+def model_of(record: dict[str, Any]) -> str:
+    return record.get("model") or DEFAULT_MODEL
+
+
+def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
+    """``deploy.load.load_summary`` of a run's MCAP, from ``cache`` when it was computed
+    from the same file (path, size, mtime) by this version, else computed and cached."""
+    from deploy.load import interval_load, load_summary
+
+    st = mcap.stat()
+    stamp = {"version": LOAD_CACHE_VERSION, "mcap": str(mcap), "mcap_bytes": st.st_size,
+             "mcap_mtime_ns": st.st_mtime_ns}
+    try:
+        cached = json.loads(cache.read_text())
+        if {k: cached.get(k) for k in stamp} == stamp:
+            return cached["summary"]
+    except (OSError, ValueError, KeyError, AttributeError):
+        pass
+    summary = load_summary(interval_load(mcap))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp")
+    tmp.write_text(json.dumps({**stamp, "summary": summary}, allow_nan=False))
+    tmp.replace(cache)
+    return summary
+
+
+def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]], cache_dir: Path
+                 ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, load summary) of every judged run with a channel whose MCAP is here, and
+    the records of those whose MCAP is not (or could not be read)."""
+    got, missing = [], []
+    for r in judged(records):
+        if r["scheme"] in NO_CHANNEL:
+            continue
+        mcap = mcap_of(sweep_dir, plan, r)
+        if mcap is None:
+            missing.append(r)
+            continue
+        try:
+            summary = run_load(mcap, cache_dir / f"{r['run_id']}.json")
+        except Exception as exc:  # a truncated or foreign log: the report goes on without it
+            log.warning("%s: offered load not read: %s", mcap, exc)
+            missing.append(r)
+            continue
+        if summary["intervals"]:
+            got.append((r, summary))
+    return got, missing
+
+
+@dataclass(frozen=True, slots=True)
+class LoadCell:
+    runs: int
+    load_median: float | None  # median over runs of each run's median offered load / capacity
+    overloaded_share: float | None  # intervals with load > 1, pooled over the runs
+    share_sent_median: float | None  # median over runs of each run's median share sent
+    delivery_offered: float | None  # intervals with a copy of the collider at the ego / intervals it was offered
+    delivery_all: float | None  # the same over every interval
+    visibility: float | None  # the records' collider_visible_share, mean over the runs
+
+
+def load_by_density(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]) -> dict[tuple[str, str, int], LoadCell]:
+    """(model, scheme, vehicles) -> the load and the collider's delivery over its runs."""
+    groups: dict[tuple[str, str, int], list[tuple[dict[str, Any], dict[str, Any]]]] = defaultdict(list)
+    for r, s in pairs:
+        groups[(model_of(r), r["scheme"], r["vehicles"])].append((r, s))
+
+    def median(xs: Iterable[float | None]) -> float | None:
+        xs = [x for x in xs if x is not None]
+        return statistics.median(xs) if xs else None
+
+    out = {}
+    for k, g in groups.items():
+        with_load = [s for _, s in g if s.get("load_median") is not None]
+        intervals = sum(s["intervals"] for s in with_load)
+        offered = sum(s["collider_offered_intervals"] for _, s in g)
+        delivered = sum(s["collider_delivered_intervals"] for _, s in g)
+        total = sum(s["intervals"] for _, s in g)
+        vis = [r["collider_visible_share"] for r, _ in g if r.get("collider_visible_share") is not None]
+        out[k] = LoadCell(
+            len(g), median(s["load_median"] for s in with_load),
+            sum(s["overloaded_share"] * s["intervals"] for s in with_load) / intervals if intervals else None,
+            median(s["share_sent_median"] for s in with_load),
+            delivered / offered if offered else None, delivered / total if total else None,
+            statistics.fmean(vis) if vis else None)
+    return out
+
+
+def load_table_md(cells: dict[tuple[str, str, int], LoadCell]) -> list[str]:
+    """Rows by scheme then density; a model column only when the sweep holds more than one."""
+    models = sorted({m for m, _, _ in cells})
+    several = len(models) > 1
+
+    def pct(x: float | None) -> str:
+        return "-" if x is None else f"{100 * x:.0f}%"
+
+    def num(x: float | None) -> str:
+        return "-" if x is None else f"{x:.2f}"
+
+    rows = []
+    for (m, s, n), c in sorted(cells.items(), key=lambda kv: (kv[0][0], _order(kv[0][1]), kv[0][2])):
+        rows.append([*([m] if several else []), s, n, c.runs, num(c.load_median), pct(c.overloaded_share),
+                     num(c.share_sent_median), pct(c.delivery_offered), pct(c.delivery_all), pct(c.visibility)])
+    return _md([*(["model"] if several else []), "scheme", "vehicles", "runs", "offered load / capacity (median)",
+                "intervals over capacity", "share sent (median)", "collider delivery (intervals offered)",
+                "collider delivery (all intervals)", "collider visibility"], rows)
 
 
 # ---------------------------------------------------------------------------- plots
@@ -511,6 +618,58 @@ def plot_scheduled_delay(by_scheme: dict[str, tuple[int, list[Sent]]], vehicles:
     _save(fig, path)
 
 
+MODEL_MARKERS = ("o", "s", "^", "D", "v", "x")
+
+
+def plot_load(cells: dict[tuple[str, str, int], LoadCell], path: Path, why_empty: str) -> None:
+    plt = _pyplot()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.8))
+    if not cells:
+        _no_data(a, why_empty)
+        _no_data(b, why_empty)
+    else:
+        densities = sorted({n for _, _, n in cells})
+        models = sorted({m for m, _, _ in cells})
+        several = len(models) > 1
+        lines = sorted({(m, s) for m, s, _ in cells}, key=lambda ms: (ms[0], _order(ms[1])))
+        loads = []
+        for i, (m, s) in enumerate(lines):
+            xs = [n for n in densities if (m, s, n) in cells]
+            x = dict(zip(xs, _dodge(xs, i, len(lines), densities)))
+            marker = MODEL_MARKERS[models.index(m) % len(MODEL_MARKERS)] if several else SCHEME_MARKER.get(s, "o")
+            style = {"marker": marker, "color": SCHEME_COLOR.get(s), "alpha": 0.85}
+            name = f"{s} ({m})" if several else s
+            with_load = [n for n in xs if cells[(m, s, n)].load_median is not None]
+            if with_load:
+                ys = [cells[(m, s, n)].load_median for n in with_load]
+                loads += ys
+                a.plot([x[n] for n in with_load], ys, "-", label=name, **style)
+            got = [n for n in xs if cells[(m, s, n)].delivery_offered is not None]
+            b.plot([x[n] for n in got], [100 * cells[(m, s, n)].delivery_offered for n in got], "-",
+                   label=f"{name}: delivered", **style)
+            seen = [n for n in xs if cells[(m, s, n)].visibility is not None]
+            b.plot([x[n] for n in seen], [100 * cells[(m, s, n)].visibility for n in seen], ":",
+                   label=f"{name}: visible", mfc="none", **style)
+        a.axhline(1.0, color="k", ls="--", lw=1)
+        if loads and min(loads) > 0:
+            a.set_yscale("log")  # loads span orders of magnitude from 5 to 40 vehicles
+        if not loads:
+            _no_data(a, "no V2V run (EMP has no control messages)")
+        for ax in (a, b):
+            ax.set_xticks(densities)
+            ax.set_xlim(*_density_limits(densities))
+            ax.set_xlabel("connected vehicles in range")
+            ax.grid(alpha=0.3)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7)
+        a.set_ylabel("bytes offered / channel capacity (median interval)")
+        b.set_ylim(-3, 103)
+        b.set_ylabel("% of intervals")
+    a.set_title("Offered load vs density (dashed: the channel's capacity)")
+    b.set_title("Collider delivered to the ego (of intervals offered)\nand visible in its fused view (dotted)")
+    _save(fig, path)
+
+
 # ---------------------------------------------------------------------------- summary.md
 
 
@@ -553,7 +712,8 @@ def coverage(records: Sequence[dict[str, Any]], plan: dict[str, Any] | None) -> 
 
 
 def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[str, Any] | None,
-               delay: dict[str, DelayRow], delay_vehicles: int | None, delay_note: str) -> str:
+               delay: dict[str, DelayRow], delay_vehicles: int | None, delay_note: str,
+               load: dict[tuple[str, str, int], LoadCell] | None = None, load_note: str = "") -> str:
     name = (plan or {}).get("spec", {}).get("name", sweep_dir.name)
     lines = [f"# Sweep report: {name}", "",
              f"`{sweep_dir}`: {coverage(records, plan)} Report written {time.strftime('%Y-%m-%d %H:%M')}.", "",
@@ -597,6 +757,18 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
                      [[s, d.runs, d.sent, "-" if d.spearman is None else f"{d.spearman:+.2f}",
                        "; ".join(f"{label} -> {ms:.1f} ({n})" for label, ms, n in d.by_reward)]
                       for s, d in delay.items()])
+    lines += ["", "## Offered load and the collider's delivery by scheme x density", "",
+              "From each judged run's MCAP (`python -m deploy.load`): per interval, the bytes of every object in "
+              "the senders' control messages over the data channel's capacity (B N T_n / 8), the share of them "
+              "put on the air, and whether the ego decoded a copy of the collider. Load and share sent: median "
+              "over runs of each run's median interval; delivery: intervals in which the ego decoded the collider "
+              "over those in which a sender offered it (and over all); visibility: `collider_visible_share`, "
+              "mean over the same runs. EMP has no control messages: no load; its delivery counts relayed "
+              "segments with at least 5 of the collider's points.", ""]
+    if load:
+        lines += load_table_md(load)
+    if load_note:
+        lines += ["", load_note]
     failed = [r for r in records if r.get("status") != "judged"]
     if failed:
         lines += ["", "## Failed runs", ""]
@@ -678,8 +850,18 @@ def main(argv: list[str] | None = None) -> int:
         note += " " + lacking
     plot_scheduled_delay(by_scheme, vehicles if by_scheme else None, out / "scheduled_delay.png", why)
 
+    t0 = time.perf_counter()
+    pairs, no_mcap = load_of_runs(args.sweep_dir, plan, records, args.sweep_dir / "report" / "load")
+    load = load_by_density(pairs)
+    load_note = "" if load else "No data: no judged run with a channel (every scheme but single) has its MCAP here."
+    if no_mcap:
+        load_note += (f" {_n(len(no_mcap), 'judged run')} with a channel left out, MCAP missing or unreadable: "
+                      f"{_ids([r['run_id'] for r in no_mcap])}.")
+    log.info("offered load of %s in %.1f s", _n(len(pairs), "run"), time.perf_counter() - t0)
+    plot_load(load, out / "load_vs_density.png", "no judged run with a channel and its MCAP")
+
     (out / "summary.md").write_text(summary_md(args.sweep_dir, records, plan, delay_table(by_scheme),
-                                               vehicles if by_scheme else None, note))
+                                               vehicles if by_scheme else None, note, load, load_note.strip()))
     log.info("%d runs -> %s: %s, summary.md", len(records), out, ", ".join(FIGURES))
     return 0
 

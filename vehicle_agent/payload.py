@@ -73,26 +73,22 @@ def encode_objects(sender: int, tick: int, t_sim_s: float, pose: Pose, mount_hei
     ``bytes_per_point=24``: the points as float64 offsets from the centroid (version 2)."""
     starts = np.cumsum(counts) - counts
     if bytes_per_point == BYTES_PER_POINT_F64:
+        version = VERSION_F64
         body = (points.astype(np.float64) - np.repeat(centroids, counts, axis=0).astype(np.float64)).astype("<f8")
-        out = []
-        for oid, start, n, c, v in zip(object_ids, starts.tolist(), counts.tolist(), centroids.tolist(),
-                                       velocities.tolist()):
-            header = _HEADER.pack(MAGIC, VERSION_F64, sender, oid, tick, t_sim_s, pose.x_m, pose.y_m, pose.yaw_rad,
-                                  mount_height_m, *c, *v)
-            out.append(header + body[start:start + n].tobytes())
-        return out
-    if bytes_per_point != BYTES_PER_POINT:
+    elif bytes_per_point == BYTES_PER_POINT:
+        version = VERSION
+        rel_cm = np.rint((points - np.repeat(centroids, counts, axis=0)) * 100.0)
+        if rel_cm.size:  # each object's largest offset, NaN if it has one, as np.max gives it
+            widest = np.maximum.reduceat(np.abs(rel_cm).max(axis=1), starts[counts > 0])
+            if (widest > 32767).any():
+                raise ValueError("object spans more than 327 m")
+        body = rel_cm.astype("<i2")
+    else:
         raise ValueError(f"bytes_per_point: {bytes_per_point} is not {BYTES_PER_POINT} or {BYTES_PER_POINT_F64}")
-    rel_cm = np.rint((points - np.repeat(centroids, counts, axis=0)) * 100.0)
-    if rel_cm.size:  # each object's largest offset, NaN if it has one, as np.max gives it
-        widest = np.maximum.reduceat(np.abs(rel_cm).max(axis=1), starts[counts > 0])
-        if (widest > 32767).any():
-            raise ValueError("object spans more than 327 m")
-    body = rel_cm.astype("<i2")
     out = []
     for oid, start, n, c, v in zip(object_ids, starts.tolist(), counts.tolist(), centroids.tolist(),
                                    velocities.tolist()):
-        header = _HEADER.pack(MAGIC, VERSION, sender, oid, tick, t_sim_s, pose.x_m, pose.y_m, pose.yaw_rad,
+        header = _HEADER.pack(MAGIC, version, sender, oid, tick, t_sim_s, pose.x_m, pose.y_m, pose.yaw_rad,
                               mount_height_m, *c, *v)
         out.append(header + body[start:start + n].tobytes())
     return out

@@ -26,10 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-log = logging.getLogger(__name__)
+from deploy.load import EGO, MATCH_M  # how a run's collider object is found: the same as the load's
 
-MATCH_M = 3.0  # an object whose centroid is this close to the collider's true centre is the collider
-EGO = 0
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)

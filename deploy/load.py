@@ -50,9 +50,10 @@ from typing import Any
 
 import numpy as np
 
-from bench.relevance import EGO, MATCH_M
-
 log = logging.getLogger(__name__)
+
+MATCH_M = 3.0  # an object whose centroid is this close to the collider's true centre is the collider
+EGO = 0  # the ego's vid when no mission says which vehicle is the ego
 
 MIN_POINTS = 5  # EMP: a segment with this many points on the collider carries it (the judge's "visible")
 FOOTPRINT_MARGIN_M = 0.25  # the judge's margin around the collider's body (world_server.judge)

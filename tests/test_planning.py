@@ -779,6 +779,44 @@ def test_the_first_blocked_cell_along_a_path_by_hand():
     assert first_blocked(path + [0.0, 1.0], grid, blocked) is None
 
 
+def test_a_vehicle_inside_an_obstacle_margin_may_drive_on_out_of_it_by_hand():
+    """The overtaking deadlock (40 vehicles, seed 9): the ego, trailing its pass path
+    along the edge of the parked truck's inflated cells, stood inside them; the first
+    point of its path, 0.5 m on, was "blocked" and it stopped there for good. By hand,
+    on 0.5 m cells from (0, 0): a "truck side" in row 2 (y 1.0-1.5 m), columns 4-12
+    (x 2.0-6.5 m). A 1.8 m wide car: blocked = within ceil((0.9 + 0.3) / 0.5) = 3 cells
+    of it, so rows 3-5 right above it (row 5 = y 2.5-3.0 m, only in columns 4-12: at
+    dy = 3 the disc is one cell wide); the body reaches ceil(0.9 / 0.5) = 2 cells, rows
+    3-4 (y 1.5-2.5 m)."""
+    from vehicle_agent.perception import ABOVE, Grid, GridSpec
+    from vehicle_agent.planning import _blocked_passable, first_blocked
+
+    spec = GridSpec(half_extent_m=5.0)  # 20 x 20 cells of 0.5 m from (0, 0)
+    state = np.zeros((20, 20), np.uint8)
+    state[2, 4:13] = ABOVE
+    drivable, moving = np.ones((20, 20), bool), np.zeros((20, 20), bool)
+    grid = Grid(spec, 0, 0, state, drivable)
+    blocked, _ = _blocked_passable(state == ABOVE, drivable, np.ones((20, 20), bool), 3)
+    assert blocked[5, 4:13].all() and not blocked[5, 3] and not blocked[5, 13] and not blocked[6].any()
+    static = (state, drivable, moving)
+
+    # alongside the truck at y = 2.9 m (row 5: in the margin, 1.4 m from its cells' centres)
+    beside = np.array([[3.0, 2.9], [9.0, 2.9]])
+    assert first_blocked(beside, grid, blocked) == 0.5  # before: blocked at the first point, for ever
+    assert first_blocked(beside, grid, blocked, static=static, body_radius=2) is None
+    # the same line from outside the margin (x = 0, column 0): entering it at x = 2.0 counts
+    outside = np.array([[0.0, 2.9], [9.0, 2.9]])
+    assert first_blocked(outside, grid, blocked, static=static, body_radius=2) == 2.0
+    # from inside the margin straight at the truck: at s = 0.5, y = 2.4 m (row 4), the body's reach
+    at_it = np.array([[3.0, 2.9], [3.0, 0.0]])
+    assert first_blocked(at_it, grid, blocked, static=static, body_radius=2) == 0.5
+    # out of the margin (s = 0.5 at y = 3.4 m, row 6), along it, then back in: (5.0, 2.9) at s = 3.0
+    back_in = np.array([[3.0, 2.9], [3.0, 3.4], [5.0, 3.4], [5.0, 2.6]])
+    assert first_blocked(back_in, grid, blocked, static=static, body_radius=2) == 3.0
+    # a moving object's cells are not static obstacles (the speed planner's business): the body may reach them
+    assert first_blocked(at_it, grid, blocked, static=(state, drivable, state == ABOVE), body_radius=2) is None
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(2, 30), st.sampled_from([0, 1]), st.floats(0.0, 0.6))
 def test_first_along_matches_sampling_every_point_then_looking(seed, n_points, value, density):

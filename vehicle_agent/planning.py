@@ -352,6 +352,7 @@ class PathPlanner:
     path: np.ndarray | None = None
     replans: int = 0
     blocked: np.ndarray | None = None
+    static: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # what ``blocked`` was inflated from
     _route_raster: RouteRaster | None = None
     _corridor_raster: LatticeRaster | None = None  # the route raster's cells within corridor_m
     _route_cum: np.ndarray | None = None
@@ -397,6 +398,7 @@ class PathPlanner:
         corridor = self._corridor_raster.window(grid.i0, grid.j0, grid.state.shape[0])  # dist <= corridor_m
         blocked, passable = _static_blocked_passable(fused_state, grid.drivable, moving_cells, corridor, radius, ABOVE)
         self.blocked = blocked
+        self.static = (fused_state, grid.drivable, moving_cells)
         s_now = progress_along(self.route, np.array([pose.x_m, pose.y_m]), self.route_cum)
         route_ahead = point_at(self.route, s_now + np.arange(0.0, cfg.lookahead_m + 1e-9, 1.0), self.route_cum)
         if self.path is not None and self._still_good(grid, passable, pose, route_ahead):
@@ -562,15 +564,76 @@ def _first_along(mask, value, path, s, cum, i0, j0, cell):
 
 
 def first_blocked(path: np.ndarray, grid: Grid, blocked: np.ndarray, step_m: float = 0.5,
-                  s_path: np.ndarray | None = None) -> float | None:
+                  s_path: np.ndarray | None = None, static: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                  body_radius: int = 0) -> float | None:
     """Distance along the path of its first cell inside an (inflated) static obstacle;
-    ``s_path``: the path's ``arc_lengths`` if the caller has them."""
+    ``s_path``: the path's ``arc_lengths`` if the caller has them.
+
+    ``static`` = (state, drivable, moving), the grids ``blocked`` was inflated from (its
+    static obstacles are the ABOVE cells that are drivable and not moving): then a
+    vehicle that already stands inside the inflation (the path's first point, where it
+    is, lies in a blocked cell) may drive on out of it. The inflation is the body's half
+    width plus a margin, measured from cell centres, so pure pursuit trailing a path
+    that runs along its edge puts the vehicle inside it without anything near its body:
+    until the path first leaves the blocked cells, a blocked point counts only where
+    the body itself would reach a static obstacle (one within ``body_radius`` cells).
+    Without that, the first point ahead was "blocked" at 0.5 m whatever the path, and a
+    vehicle that stopped there could never start again (overtaking, 40 vehicles, seed
+    9: the ego stopped beside the parked truck in the oncoming lane and timed out)."""
     if len(path) < 2:
         return None
     cum = arc_lengths(path) if s_path is None else s_path
     s = np.arange(0.5, cum[-1], step_m)
-    hit = _first_along(blocked, 1, np.asarray(path, dtype=np.float64), s, cum, grid.i0, grid.j0, grid.spec.cell_m)
+    path = np.asarray(path, dtype=np.float64)
+    if static is None:
+        hit = _first_along(blocked, 1, path, s, cum, grid.i0, grid.j0, grid.spec.cell_m)
+    else:
+        state, drivable, moving = static
+        hit = _first_blocked_leaving(blocked, state, drivable, moving, ABOVE, body_radius, path, s, cum, grid.i0,
+                                     grid.j0, grid.spec.cell_m)
     return float(s[hit]) if hit >= 0 else None
+
+
+@njit(cache=True)
+def _near_static(state, drivable, moving, above, row, col, radius):
+    """Whether a static obstacle cell (``state == above``, drivable, not moving) lies
+    within ``radius`` cells (Euclidean, as ``_paint_disc`` paints) of cell (row, col)."""
+    ny, nx = state.shape
+    for dy in range(-radius, radius + 1):
+        yy = row + dy
+        if yy < 0 or yy >= ny:
+            continue
+        w = 0
+        while (w + 1) * (w + 1) + dy * dy <= radius * radius:
+            w += 1
+        for xx in range(max(col - w, 0), min(col + w + 1, nx)):
+            if state[yy, xx] == above and drivable[yy, xx] and not moving[yy, xx]:
+                return True
+    return False
+
+
+@njit(cache=True)
+def _first_blocked_leaving(blocked, state, drivable, moving, above, body_radius, path, s, cum, i0, j0, cell):
+    """``first_blocked`` with its ``static`` grids: the first k whose point ``s[k]`` is in
+    a blocked cell, except that while the vehicle is inside the inflation it stands in
+    (the path's first point blocked, and no unblocked point passed yet) a blocked point
+    counts only if a static obstacle lies within ``body_radius`` cells of it; -1 if none."""
+    xs, ys = np.ascontiguousarray(path[:, 0]), np.ascontiguousarray(path[:, 1])
+    leaving = _cell_value(blocked, xs[0], ys[0], i0, j0, cell) == 1
+    end = cum[cum.shape[0] - 1]
+    for k in range(s.shape[0]):
+        key = _clip(s[k], 0.0, end)
+        j = _interp_index(key, cum) if not np.isnan(key) else 0
+        x, y = _interp(key, j, cum, xs), _interp(key, j, cum, ys)
+        if _cell_value(blocked, x, y, i0, j0, cell) != 1:
+            leaving = False
+            continue
+        if leaving:
+            row, col = np.int64(np.floor(y / cell)) - j0, np.int64(np.floor(x / cell)) - i0
+            if not _near_static(state, drivable, moving, above, row, col, body_radius):
+                continue
+        return k
+    return -1
 
 
 def arrival_times(s: np.ndarray, v0: float, v_cruise: float, accel: float) -> np.ndarray:
@@ -891,7 +954,10 @@ class Planner:
         moving = Obstacles(moving.xy, moving.velocity, np.maximum(moving.length_m, MOVER_MIN_DIMS_M[0]),
                            np.maximum(moving.width_m, MOVER_MIN_DIMS_M[1]), moving.t_sim_s, moving.heading_rad)
         conflicts = [c for c in (first_conflict(path, t_path, spec, moving, t_now_s, cfg, s),
-                                 first_blocked(path, grid, self.path_planner.blocked, s_path=s)) if c is not None]
+                                 first_blocked(path, grid, self.path_planner.blocked, s_path=s,
+                                               static=self.path_planner.static,
+                                               body_radius=int(np.ceil(spec.width_m / 2 / grid.spec.cell_m))))
+                     if c is not None]
         conflict = min(conflicts) if conflicts else None
         braking, accel, stop_at = False, cfg.comfort_accel_mps2 * np.sign(cruise - speed_mps), None
         if abs(cruise - speed_mps) < 0.2:

@@ -25,7 +25,7 @@ from vehicle_agent.payload import warm_kernels as warm_payload_kernels
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.paths import arc_lengths
 from vehicle_agent.perception import build_grid, extract_objects
-from vehicle_agent.planning import Obstacle, first_conflict
+from vehicle_agent.planning import Obstacle, first_blocked, first_conflict
 from vehicle_agent.scheduler.state import _merge_join
 from vehicle_agent.tracking import associate, registered_velocity
 
@@ -54,6 +54,11 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     del slots
     agent.dataplane.neighbors.current(0.0, exclude=m.vid).take(np.zeros(1, dtype=bool))  # one out of the domain
     _warm_conflict(agent)
+    # the fast check of a kept path (``_still_good``) reads the passable cells with
+    # ``_first_along``, which the planner's blocked-cell test no longer calls (it reads
+    # the static grids too: ``_first_blocked_leaving``): load it here, with its real types
+    if agent.planner.path_planner.blocked is not None:  # a vehicle that holds still plans no path
+        first_blocked(np.array([[x, y], [x + 10.0, y]]), view.grid, agent.planner.path_planner.blocked)
     _warm_registration()
     associate(np.zeros((1, 2)), np.ones(1), np.zeros((1, 2)))  # the tracker pairs tracks from an object's second frame
     warm_fusion_kernels()

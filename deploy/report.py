@@ -719,6 +719,10 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
              f"`{sweep_dir}`: {coverage(records, plan)} Report written {time.strftime('%Y-%m-%d %H:%M')}.", "",
              "Figures: " + ", ".join(f"[{f}]({f})" for f in FIGURES) + ".", "",
              "Shares are of judged runs; failed runs (no outcome) are counted apart.", ""]
+    models = sorted({r.get("model") or "ours" for r in records})
+    lines += [f"Model{'s' if len(models) > 1 else ''}: {', '.join(models)} (docs/models.md)"
+              + (": the tables pool them, but the offered-load table keeps them apart." if len(models) > 1 else "."),
+              ""]
 
     lines += ["## Outcome shares per scheme", ""]
     counts = outcome_counts(records)

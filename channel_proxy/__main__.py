@@ -19,6 +19,7 @@ import sys
 from channel_proxy.loss import CURVES
 from channel_proxy.profiles import PROFILES, get_profile
 from channel_proxy.proxy import MODES, ChannelProxy, ProxyConfig
+from protocol.model import OURS, Model, add_model_args, model_from
 from protocol.session import add_zenoh_args, session_scope, zenoh_args_from
 from protocol.shm import add_shm_arg
 
@@ -50,19 +51,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ph.add_argument("--data-deadline-s", type=float, default=0.09, help="real-time: data closes after the tick")
     em = ap.add_argument_group("EMP relay")
     em.add_argument("--relay-xy", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"))
-    em.add_argument("--emp-bytes-per-point", type=float, default=6.0, help="on-air coding of a segment's points")
+    em.add_argument("--emp-bytes-per-point", type=float, default=None,
+                    help="on-air coding of a segment's points (default: the model's, 6)")
     ap.add_argument("--relay-extra-frames", action="store_true",
                     help="a signed run: relay every frame of a vehicle's slot, not only its own (receivers verify; "
                          "docs/security.md)")
     ap.add_argument("--stay", action="store_true", help="keep running after the world's outcome")
     ap.add_argument("--log-level", default="WARNING")
+    add_model_args(ap)
     add_shm_arg(ap)
     add_zenoh_args(ap)
     return ap.parse_args(argv)
 
 
-def profile_from(args: argparse.Namespace):
-    name = args.profile or ("emp-v2i" if args.mode == "emp" else "lte-direct")
+def profile_from(args: argparse.Namespace, model: Model = OURS):
+    """The profile named, else EMP's relay or the model's V2V radio, with the flags' reception model."""
+    name = args.profile or ("emp-v2i" if args.mode == "emp" else model.channel_profile)
     profile = get_profile(name)
     overrides = {f: getattr(args, a) for f, a in (("curve", "curve"), ("range_m", "range_m"), ("sigma_db", "sigma_db"),
                                                    ("p_fixed", "p_fixed"), ("cutoff_m", "cutoff_m"))
@@ -84,12 +88,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s proxy %(levelname)s %(message)s")
     try:
+        model = model_from(args)
+        emp_bytes = args.emp_bytes_per_point if args.emp_bytes_per_point is not None else model.emp_bytes_per_point
         config = ProxyConfig(
-            run_id=args.run_id, profile=profile_from(args), mode=args.mode, seed=args.seed,
+            run_id=args.run_id, profile=profile_from(args, model), mode=args.mode, seed=args.seed,
             ctrl_loss=args.ctrl_loss, data_loss=args.data_loss, realtime=args.realtime,
             phase_timeout_s=args.phase_timeout_s, dead_after=args.dead_after,
             ctrl_deadline_s=args.ctrl_deadline_s, data_deadline_s=args.data_deadline_s,
-            relay_xy=tuple(args.relay_xy), emp_bytes_per_point=args.emp_bytes_per_point,
+            relay_xy=tuple(args.relay_xy), emp_bytes_per_point=float(emp_bytes),
             exit_on_outcome=not args.stay, relay_extra_frames=args.relay_extra_frames, shm_dir=args.shm_dir,
         )
     except (KeyError, ValueError) as exc:

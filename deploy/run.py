@@ -205,6 +205,7 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     except ModelError as exc:
         raise InputError(str(exc)) from None
     scheduler, profile = plug_ins_from(args, scheme, model)
+    model = replace(model, channel_profile=profile)  # what the run uses is what its record says
     try:
         faults.parse(os.environ.get(faults.ENV, ""))
     except ValueError as exc:
@@ -589,7 +590,7 @@ def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -
     else:
         record = {"outcome": None, "failure": res.failure, "scenario": cfg.params.scenario,
                   "vehicles": cfg.params.vehicles, "seed": cfg.params.seed, "scheme": cfg.scheme,
-                  "model": cfg.model.label(), "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
+                  "model": cfg.model.label(), "model_settings": cfg.model.settings(), "run_id": cfg.run_id, "run_dir": str(cfg.run_dir),
                   "mcap": str(cfg.mcap_path) if cfg.mcap_path.exists() else None}
         if res.exit_code == EXIT_INTERRUPTED:
             record["interrupted"] = True

@@ -128,10 +128,18 @@ class RunKey:
         profile: a short hash of the label, ``-mpaper-3f2a9c1d``)."""
         base = (f"{self.scenario}-v{self.vehicles}-c{_num(self.collider_speed_kmh)}-d{_num(self.delta_s)}"
                 f"-{self.scheme}-s{self.seed}-t{_num(self.duration_s)}")
-        if self.model == "ours":
-            return base
-        name, _, extra = self.model.partition("+")
-        return f"{base}-m{name}" + (f"-{hashlib.sha256(extra.encode()).hexdigest()[:8]}" if extra else "")
+        suffix = model_suffix(self.model)
+        return f"{base}-{suffix}" if suffix else base
+
+
+def model_suffix(label: str) -> str:
+    """What a model's label adds to a run key and a sweep's directory: nothing for ours,
+    ``mpaper`` for a profile, ``mpaper-3f2a9c1d`` (a hash of the changed settings) for
+    settings changed on top of one."""
+    if label == "ours":
+        return ""
+    name, _, extra = label.partition("+")
+    return f"m{name}" + (f"-{hashlib.sha256(extra.encode()).hexdigest()[:8]}" if extra else "")
 
     def run_flags(self) -> list[str]:
         return ["--scenario", self.scenario, "--vehicles", str(self.vehicles),
@@ -221,13 +229,17 @@ def spec_from(values: Mapping[str, Any], name: str) -> SweepSpec:
     if "model" in values or "model_settings" in values:
         from protocol.model import ModelError, resolve
 
+        from channel_proxy.profiles import get_profile
+
         model, settings = values.get("model", "ours"), values.get("model_settings", {})
         if not isinstance(settings, Mapping):
             raise SweepError(f"model_settings: {settings!r} is not a table of settings")
         try:
-            resolve(model, settings)
+            get_profile(resolve(model, settings).channel_profile)
         except ModelError as exc:
             raise SweepError(str(exc)) from None
+        except KeyError as exc:
+            raise SweepError(f"channel_profile: {exc.args[0]}") from None
         out["model"], out["model_settings"] = model, tuple(sorted(settings.items()))
     return SweepSpec(**out)
 
@@ -289,6 +301,8 @@ def narrowed(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
     if args.model is not None:
         out["model"] = args.model
     if args.model_set:
+        if not isinstance(out.get("model_settings") or {}, Mapping):
+            raise SweepError(f"model_settings: {out['model_settings']!r} is not a table of settings")
         settings = dict(out.get("model_settings") or {})
         for text in args.model_set:
             key, sep, value = text.partition("=")
@@ -892,8 +906,8 @@ def main(argv: list[str] | None = None) -> int:
     except SweepError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    label = spec.resolved_model().label()
-    out = args.out or Path("runs") / "sweeps" / (spec.name if label == "ours" else f"{spec.name}-{keys[0].name.split('-m', 1)[1]}")
+    suffix = model_suffix(spec.resolved_model().label())
+    out = args.out or Path("runs") / "sweeps" / (f"{spec.name}-{suffix[1:]}" if suffix else spec.name)
     records = latest(read_results(out / RESULTS))
     todo = [k for k in keys if k.name not in records
             or (args.retry_failed and records[k.name]["status"] == "failed")]

@@ -150,7 +150,7 @@ def _authority(cfg: RunConfig) -> str:
 
 def proxy_args(cfg: RunConfig) -> tuple[str, ...]:
     flags = [*_common(cfg, PROXY), "--seed", str(cfg.params.seed), "--log-level", cfg.log_level,
-             "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v"]
+             "--mode", "emp" if cfg.scheme == EMP_SCHEME else "v2v", *cfg.model.args()]
     if cfg.scheme != EMP_SCHEME:
         flags += ["--profile", cfg.channel_profile]
     else:  # EMP's segments on the air, as the model charges them

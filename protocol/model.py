@@ -36,7 +36,8 @@ class Model:
     name: str = "ours"
     object_points: str = "all"  # which of an object's points it offers and sends
     column_m: float = 0.05  # with object_points="column": one point per column this wide
-    ground_cut_m: float = 0.25  # an object's points at most this high above the ground are left out
+    ground_cut_m: float = 0.25  # with object_points="column": points at most this high are left out (all: 0.25,
+    # the perception's obstacle threshold)
     bytes_per_point: int = 6  # on the air: 6 (int16 centimetres) or 24 (three float64)
     agnostic_order: str = "rotation"  # agnostic's order: a rotating round robin, or a fresh shuffle every interval
     fill_spare: bool = True  # AutoCast fills the frames' spare airtime with the objects nobody needs
@@ -94,9 +95,18 @@ def _check(m: Model) -> None:
         v = getattr(m, name)
         if not (math.isfinite(v) and v >= 0):
             raise ModelError(f"{name}: {v!r} is not a finite number >= 0")
-    if not (-90 < m.lidar_fov_down_deg < m.lidar_fov_up_deg < 90):
-        raise ModelError(f"lidar_fov_up_deg: {m.lidar_fov_up_deg!r} must lie above lidar_fov_down_deg "
-                         f"({m.lidar_fov_down_deg!r}), both within (-90, 90)")
+    for name in ("lidar_fov_up_deg", "lidar_fov_down_deg"):
+        v = getattr(m, name)
+        if not (math.isfinite(v) and -90 < v < 90):
+            raise ModelError(f"{name}: {v!r} is not within (-90, 90)")
+    if not m.lidar_fov_down_deg < m.lidar_fov_up_deg:
+        raise ModelError(f"lidar_fov_up_deg: {m.lidar_fov_up_deg!r} is not above lidar_fov_down_deg "
+                         f"({m.lidar_fov_down_deg!r})")
+    if m.object_points == "all":  # the column settings shape nothing then: a changed one would be a label, not a model
+        for name, default in (("column_m", 0.05), ("ground_cut_m", 0.25)):
+            if getattr(m, name) != default:
+                raise ModelError(f"{name}: applies with object_points=column only (all: every point above the "
+                                 f"perception's 0.25 m)")
     if m.group_size < 0:
         raise ModelError(f"group_size: {m.group_size!r} is not >= 0")
 
@@ -130,7 +140,7 @@ def resolve(name: str = DEFAULT, settings: Mapping[str, Any] | Iterable[str] = (
     """The profile ``name`` with ``settings`` on top: a mapping of setting to value, or
     ``KEY=VALUE`` texts as the command line gives them. Raises ``ModelError`` naming the
     field."""
-    base = PROFILES.get(name)
+    base = PROFILES.get(name) if isinstance(name, str) else None
     if base is None:
         raise ModelError(f"model: {name!r} is not one of {', '.join(PROFILES)}")
     if not isinstance(settings, Mapping):

@@ -90,3 +90,27 @@ def test_after_fusion_the_collider_is_in_the_egos_grid_at_its_true_position(left
     # every received cell centre lies on the collider's true footprint, grown by one cell (0.5 m)
     lo, hi = truth.min(axis=0) - 0.5 * np.sqrt(2), truth.max(axis=0) + 0.5 * np.sqrt(2)
     assert np.all((centers >= lo) & (centers <= hi))
+
+
+def test_under_the_paper_model_an_object_offers_its_columns_and_says_their_size(left_turn_at_5s):
+    """The truck's view under ``--model paper``: every object's size in its object map is
+    its float64 payload's length, its points one per 5 cm column above 0.5 m."""
+    from protocol.model import PAPER
+    from vehicle_agent.dataplane import Neighbors
+    from vehicle_agent.payload import decode_object
+
+    sim, _, scans, _ = left_turn_at_5s
+    plane = DataPlane(sim.mission(TRUCK), sim.scenario.roadmap.to_msg(), model=PAPER)
+    view = plane.perceive(scans[TRUCK])
+    om = plane.object_map(view, Neighbors.none())
+    payloads = plane.payloads(view, om.object_id.tolist())
+    assert len(payloads) > 3
+    for oid, size in zip(om.object_id.tolist(), om.size_bytes.tolist()):
+        raw = payloads[oid]
+        assert len(raw) == size and (size - 64) % 24 == 0
+        track = next(t for t in view.tracks if t.track_id == oid)
+        pts = track.detection.points_world
+        kept = np.unique(np.floor(pts[pts[:, 2] > 0.5][:, :2] / 0.05), axis=0)
+        n = (size - 64) // 24
+        assert n <= len(kept) and n <= len(pts)  # no more than one point per column above the cut
+        assert len(decode_object(raw).points_sensor) == n

@@ -35,6 +35,8 @@ def test_profiles_and_settings_alone():
                                                                           "bytes_per_point"),
     ("ours", ["fill_spare=maybe"], "fill_spare"), ("ours", ["group_size=1.5"], "group_size"),
     ("ours", ["object_points=some"], "object_points"), ("ours", ["lidar_fov_up_deg=-30"], "lidar_fov_up_deg"),
+    ("ours", ["lidar_fov_down_deg=-95"], "lidar_fov_down_deg"), ("ours", ["ground_cut_m=0.5"], "ground_cut_m"),
+    ("paper", ["object_points=all"], "ground_cut_m"),
 ])
 def test_a_bad_setting_names_its_field(name, sets, field):
     with pytest.raises(ModelError, match=f"^{field}:"):
@@ -54,11 +56,15 @@ def test_the_launcher_refuses_a_bad_model_and_passes_a_good_one_to_every_process
             argv = list(spec.args)
             assert argv[argv.index("--model") + 1] == "paper"
             assert argv[argv.index("--model-set") + 1] == "hold_s=0.5"
+        if spec.name == table.PROXY:
+            argv = list(spec.args)
+            assert argv[argv.index("--profile") + 1] == "lte-direct-100ms" and "--model" in argv
         if spec.name == table.RECORDER:
             assert "model=paper+hold_s=0.5" in spec.args
     own = options_from(parse_args(["--out", str(tmp_path), "--model", "paper", "--channel-profile", "lte-direct"]),
                        hub="tcp/127.0.0.1:1")
-    assert own.run.channel_profile == "lte-direct"  # a run's own radio wins over the model's
+    assert own.run.channel_profile == "lte-direct"  # a run's own radio wins over the model's, and is recorded
+    assert own.run.model.channel_profile == "lte-direct" and own.run.model.label() == "paper+channel_profile=lte-direct"
 
 
 def test_column_thinning_by_hand():
@@ -89,16 +95,20 @@ def test_float64_payloads_round_trip_beside_int16_ones():
     assert np.array_equal(batch.points_sensor, singles)
 
 
-def _instance(n_senders=3, per_sender=4, size=3000):
+def _instance(senders=(0, 1, 2), per_sender=4, size=3000):
     offers = {v: SenderOffers(np.arange(per_sender), np.full(per_sender, size), np.array([9]),
-                              np.zeros((per_sender, 1)), np.ones((per_sender, 1))) for v in range(n_senders)}
-    return make_instance(offers, lambda i, j: 1.0, vids=[*range(n_senders), 9])
+                              np.zeros((per_sender, 1)), np.ones((per_sender, 1))) for v in senders}
+    return make_instance(offers, lambda i, j: 1.0, vids=[*senders, 9])
 
 
 def test_the_shuffle_is_a_permutation_drawn_alike_and_new_every_interval():
     inst = _instance()
-    a, b = shuffled_order(inst, 11), shuffled_order(inst, 11)
-    assert np.array_equal(a, b) and sorted(a.tolist()) == list(range(inst.n_objects))
+    a = shuffled_order(inst, 11)
+    assert sorted(a.tolist()) == list(range(inst.n_objects))
+    # another member heard the same messages in another order: the same objects in the same order
+    other = _instance(senders=(2, 0, 1))
+    key = lambda i, order: [(int(i.vids[i.owner[k]]), int(i.object_id[k])) for k in order]  # noqa: E731
+    assert key(other, shuffled_order(other, 11)) == key(inst, a)
     orders = {tuple(shuffled_order(inst, k).tolist()) for k in range(20)}
     assert len(orders) > 15  # 12! orders: twenty intervals all but never repeat one
     sched = get("agnostic-shuffle")(inst, SchedulerState(order_key=11))
@@ -109,7 +119,7 @@ def test_the_shuffle_is_a_permutation_drawn_alike_and_new_every_interval():
 def test_each_model_picks_its_schemes_schedulers():
     assert scheduler_of("agnostic") == "agnostic" and scheduler_of("autocast") == "autocast"
     assert scheduler_of("agnostic", PAPER) == "agnostic-shuffle" and scheduler_of("autocast", PAPER) == "greedy"
-    assert scheduler_of("autocast-fptas", PAPER) == "autocast-fptas"
+    assert scheduler_of("autocast-fptas", PAPER) == "fptas" and scheduler_of("autocast-fptas") == "autocast-fptas"
 
 
 def test_a_zero_hold_keeps_this_intervals_receptions_only():
@@ -122,3 +132,17 @@ def test_a_zero_hold_keeps_this_intervals_receptions_only():
     store.add_batch(decode_objects(raw)[0])
     assert len(store.current(t)) == 1
     assert len(store.current(t + 0.1)) == 0  # one interval later it is gone: no coasting
+
+
+def test_a_float64_body_beyond_float32_decodes_to_inf_without_a_warning():
+    import warnings
+
+    head = encode_objects(1, 7, 0.7, Pose(0, 0, 0), 1.9, [4], np.zeros((1, 3), np.float32), np.zeros((1, 2), np.float32),
+                          np.zeros((1, 3), np.float32), np.array([1]), bytes_per_point=24)[0][:HEADER_BYTES]
+    raw = head + np.array([1e300, np.nan, -np.inf], dtype="<f8").tobytes()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        one = decode_object(raw).points_sensor
+        batch, bad = decode_objects([raw])
+    assert bad == 0 and np.array_equal(batch.points_sensor, one, equal_nan=True)
+    assert np.isinf(one[0, 0]) and np.isnan(one[0, 1]) and one[0, 2] == -np.inf

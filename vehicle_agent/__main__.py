@@ -90,7 +90,10 @@ def main(argv: list[str] | None = None) -> int:
     try:  # a bad plug-in name or model setting fails here, not at the first schedule
         args.model = model_from(args)
         args.channel_profile = args.channel_profile or args.model.channel_profile
-        get_profile(args.channel_profile)
+        try:
+            get_profile(args.channel_profile)
+        except KeyError as exc:
+            raise KeyError(f"channel_profile: {exc.args[0]}") from None
         get_scheduler(args.scheduler or scheduler_of(args.scheme, args.model))
     except (KeyError, UnknownSchedulerError, ModelError) as exc:
         print(f"error: {exc.args[0]}", file=sys.stderr)
@@ -121,11 +124,14 @@ SCHEDULER_OF = {"agnostic": "agnostic", "autocast": "autocast", "autocast-fptas"
 
 def scheduler_of(scheme: str, model: Model = OURS) -> str:
     """The scheme's own scheduler under ``model``: agnostic's order, and whether AutoCast
-    fills its spare airtime (``autocast``) or not (``greedy``, Algorithm 1 alone)."""
+    fills its spare airtime (``autocast``, ``autocast-fptas``) or not (``greedy``,
+    Algorithm 1 alone; ``fptas``)."""
     if scheme == "agnostic" and model.agnostic_order == "shuffle":
         return "agnostic-shuffle"
     if scheme == "autocast" and not model.fill_spare:
         return "greedy"
+    if scheme == "autocast-fptas" and not model.fill_spare:
+        return "fptas"
     return SCHEDULER_OF.get(scheme, "autocast")
 
 

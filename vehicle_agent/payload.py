@@ -119,7 +119,8 @@ def decode_object(payload: bytes) -> ObjectPayload:
     centroid = np.array([cx, cy, cz], dtype=np.float32)
     if version == VERSION_F64:
         rel64 = np.frombuffer(payload, dtype="<f8", offset=HEADER_BYTES).reshape(-1, 3)
-        points = (rel64 + centroid.astype(np.float64)).astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # a value beyond float32 becomes inf, as a sender's could
+            points = (rel64 + centroid.astype(np.float64)).astype(np.float32)
     else:
         rel = np.frombuffer(payload, dtype="<i2", offset=HEADER_BYTES).reshape(-1, 3)
         points = rel.astype(np.float32) / 100.0 + centroid
@@ -182,7 +183,8 @@ def decode_objects(payloads: list[bytes]) -> tuple[ObjectBatch, int]:
         starts = np.cumsum(counts) - counts
         for k in np.flatnonzero(wide).tolist():
             rel = np.frombuffer(raw, dtype="<f8", count=3 * int(counts[k]), offset=int(body_starts[k]))
-            points[starts[k]:starts[k] + counts[k]] = rel.reshape(-1, 3) + centroid[k].astype(np.float64)
+            with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, as decode_object gives it
+                points[starts[k]:starts[k] + counts[k]] = rel.reshape(-1, 3) + centroid[k].astype(np.float64)
     batch = ObjectBatch(head.view("<u2")[:, 3].astype(np.int64), head.view("<u4")[:, 2].astype(np.int64),
                         fields[0], fields[1:4].T, fields[4], fields[8:10].T, points, counts)
     return batch, len(payloads) - len(counts)

@@ -146,3 +146,35 @@ def test_a_float64_body_beyond_float32_decodes_to_inf_without_a_warning():
         batch, bad = decode_objects([raw])
     assert bad == 0 and np.array_equal(batch.points_sensor, one, equal_nan=True)
     assert np.isinf(one[0, 0]) and np.isnan(one[0, 1]) and one[0, 2] == -np.inf
+
+
+@pytest.mark.parametrize("model, held", [(OURS, True), (PAPER, False)])
+def test_an_agent_holds_a_received_object_as_its_model_says_after_its_warm_up(model, held):
+    """The truck shares what it sees at tick 0; the ego fuses it, then hears nothing at
+    tick 1: our model still shows the objects (carried forward), the paper's does not."""
+    from channel_proxy.profiles import get_profile
+    from protocol.codec import decode, encode
+    from protocol.messages import Mission, Scan
+    from vehicle_agent.agent import Agent
+    from vehicle_agent.agreement import AgreementConfig
+    from vehicle_agent.warmup import warm_up
+    from world_server.scenarios import ScenarioParams
+    from world_server.sim import Simulation
+
+    sim = Simulation(ScenarioParams(scenario="red_light", vehicles=5, delta_s=0.0, seed=0), lidar_config(model))
+    mapmsg = sim.scenario.roadmap.to_msg()
+    ego, truck = (Agent(decode(encode(sim.mission(vid)), Mission), mapmsg, model) for vid in (0, 1))
+    warm_up(ego, AgreementConfig.from_profile(get_profile(model.channel_profile), scheduler="greedy"))
+    scans = []
+    for _ in range(2):
+        views = sim.sense(sim.connected_vids)
+        scans.append({vid: Scan(sim.tick, sim.t_sim_s, vid, views[vid].pose, views[vid].speed_mps,
+                                views[vid].range_cm) for vid in (0, 1)})
+        sim.step({})
+    truck_view = truck.perceive(scans[0][1])
+    payloads = list(truck.dataplane.payloads(truck_view, [t.track_id for t in truck_view.tracks]).values())
+    assert payloads
+    ego.fuse(ego.perceive(scans[0][0]), payloads)
+    assert len(ego.dataplane.shared_batch) > 0
+    ego.fuse(ego.perceive(scans[1][0]), [])
+    assert (len(ego.dataplane.shared_batch) > 0) == held

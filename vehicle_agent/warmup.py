@@ -74,7 +74,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     oid.setflags(write=False)
     _merge_join(np.zeros(1, dtype=np.int64), oid, key[:, 0], key[:, 1])
     agent.dataplane.neighbors.last.clear()
-    agent.dataplane.received = type(agent.dataplane.received)()
+    agent.dataplane.received = type(agent.dataplane.received)(max_age_s=agent.dataplane.received.max_age_s)
     agent.last_plan = None
 
 

@@ -131,6 +131,11 @@ class RunKey:
         suffix = model_suffix(self.model)
         return f"{base}-{suffix}" if suffix else base
 
+    def run_flags(self) -> list[str]:
+        return ["--scenario", self.scenario, "--vehicles", str(self.vehicles),
+                "--collider-speed", repr(self.collider_speed_kmh), "--delta", repr(self.delta_s),
+                "--scheme", self.scheme, "--seed", str(self.seed), "--duration", repr(self.duration_s)]
+
 
 def model_suffix(label: str) -> str:
     """What a model's label adds to a run key and a sweep's directory: nothing for ours,
@@ -140,11 +145,6 @@ def model_suffix(label: str) -> str:
         return ""
     name, _, extra = label.partition("+")
     return f"m{name}" + (f"-{hashlib.sha256(extra.encode()).hexdigest()[:8]}" if extra else "")
-
-    def run_flags(self) -> list[str]:
-        return ["--scenario", self.scenario, "--vehicles", str(self.vehicles),
-                "--collider-speed", repr(self.collider_speed_kmh), "--delta", repr(self.delta_s),
-                "--scheme", self.scheme, "--seed", str(self.seed), "--duration", repr(self.duration_s)]
 
 
 def time_limit_s(scenario: str) -> float:

@@ -67,6 +67,25 @@ def test_run_key_name_is_a_valid_run_id():
     assert k.run_flags()[k.run_flags().index("--delta") + 1] == "-0.5"
 
 
+def test_a_model_other_than_ours_is_in_every_key_and_every_run_s_flags(tmp_path):
+    from deploy.sweep import launcher_args, spec_from
+
+    values = {**sweep.preset_values("smoke"), "model": "paper", "model_settings": {"hold_s": 1.0}}
+    spec = spec_from(values, "smoke")
+    keys = sweep.expand(spec)
+    assert {k.model for k in keys} == {"paper+hold_s=1.0"}
+    assert keys[0].name.startswith("left_turn-v5-c30-d0-single-s0-t30-mpaper-") and len(keys[0].name.split("-")[-1]) == 8
+    argv = launcher_args(spec, keys[0], keys[0].name, tmp_path, warm=True)
+    assert argv[argv.index("--model") + 1] == "paper" and argv[argv.index("--model-set") + 1] == "hold_s=1.0"
+    plain = sweep.expand(spec_from(sweep.preset_values("smoke"), "smoke"))
+    assert plain[0].name == "left_turn-v5-c30-d0-single-s0-t30" and "--model" in launcher_args(
+        spec_from(sweep.preset_values("smoke"), "smoke"), plain[0], "r", tmp_path, warm=True)
+    with pytest.raises(sweep.SweepError, match="^hold_s:"):
+        spec_from({**values, "model_settings": {"hold_s": "x"}}, "smoke")
+    with pytest.raises(sweep.SweepError, match="^model:"):
+        spec_from({**values, "model": ["paper"]}, "smoke")
+
+
 @pytest.mark.parametrize("over, message", [
     ({"vehicles": [5, 500]}, "vehicles: 500 is not in [2, 64]"),
     ({"schemes": ["telepathy"]}, "schemes: 'telepathy' is not one of"),

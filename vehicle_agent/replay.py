@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import json
 import sys
 import time
 from collections.abc import Iterable
@@ -136,6 +137,15 @@ class Replayed:
     stages_ms: dict[str, float]  # each stage's CPU time per tick (the agent's own timings)
 
 
+def model_of(metadata: dict[str, str]):
+    """The run's model from its MCAP metadata (``model``, ``model_settings``); ours for a
+    log that names none."""
+    from protocol.model import resolve
+
+    settings = json.loads(metadata.get("model_settings") or "{}")
+    return resolve((metadata.get("model") or "ours").partition("+")[0], settings)
+
+
 def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None, credentials: Path | None = None) -> Replayed:
     """Replay vehicle ``vid`` over the log and diff its outputs; a run that signed needs
     the vehicle's ``credentials`` (``<run>/credentials/agent<vid>.v2x.json``): Ed25519
@@ -156,7 +166,7 @@ def replay(log: Log, vid: int, profiler: cProfile.Profile | None = None, credent
     step = Pipeline(mission, mapmsg, scheme, log.metadata.get("channel_profile") or "lte-direct",
                     log.metadata.get("scheduler") or None, link,
                     (lambda raw: reports.__setitem__(decode(raw).tick, raw)) if mission.role == "ego" else None,
-                    guard)
+                    guard, model_of(log.metadata))
     if scheme != "lane":
         warm_up(step.agent, step.agreement)
     cmds: dict[int, bytes] = {}

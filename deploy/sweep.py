@@ -125,7 +125,7 @@ class RunKey:
     def name(self) -> str:
         """Readable and a valid run id: ``left_turn-v10-c30-d-1-autocast-s0-t20`` (0.5 -> 0p5);
         under another model than ours ``...-t20-mpaper`` (settings changed on top of a
-        profile: a short hash of the label, ``-mpaper-3f2a9c1d``)."""
+        profile: a short hash of the label, ``-mpaper-a4efd27e`` for ``paper+hold_s=1.0``)."""
         base = (f"{self.scenario}-v{self.vehicles}-c{_num(self.collider_speed_kmh)}-d{_num(self.delta_s)}"
                 f"-{self.scheme}-s{self.seed}-t{_num(self.duration_s)}")
         suffix = model_suffix(self.model)
@@ -139,8 +139,8 @@ class RunKey:
 
 def model_suffix(label: str) -> str:
     """What a model's label adds to a run key and a sweep's directory: nothing for ours,
-    ``mpaper`` for a profile, ``mpaper-3f2a9c1d`` (a hash of the changed settings) for
-    settings changed on top of one."""
+    ``mpaper`` for a profile, ``mpaper-a4efd27e`` for settings changed on top of one (a
+    hash of them, here ``hold_s=1.0``)."""
     if label == "ours":
         return ""
     name, _, extra = label.partition("+")

@@ -242,7 +242,7 @@ class DataPlane:
         self.mount_m = mission.lidar.mount_height_m
         self.raster = DrivableRaster(mapmsg.drivable, self.spec.cell_m)
         self.buildings = _box_corners(np.asarray(mapmsg.buildings, dtype=np.float64).reshape(-1, 6))
-        self.tracker = Tracker()
+        self.tracker = Tracker(cell_m=self.spec.cell_m)
         self.lanes = LaneDirections(mapmsg.lanes)
         self.received = ReceivedStore(max_age_s=model.hold_s)
         self.neighbors = NeighborTable()

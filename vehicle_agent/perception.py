@@ -334,6 +334,21 @@ def _objects(pts: np.ndarray, pts32: np.ndarray, bounds: np.ndarray, grid: Grid,
 _new_object = slots_constructor(DetectedObject)  # DetectedObject(...) without the frozen __init__'s cost
 
 
+def object_of_points(points: np.ndarray, cell_m: float) -> DetectedObject:
+    """One object of ``points`` (float32 (n, 3), n >= 1, world x, y and height), its box
+    and cells worked out as ``extract_objects`` works out a component's: the tracker's
+    parts of a detection that held two objects (``tracking.split_merged``)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    bounds = np.array([0, len(pts)], dtype=np.int64)
+    mean, yaw, u_lo, u_hi, v_lo, v_hi, z_mean = _stats_of(pts, bounds, _label_sums(pts, bounds))
+    box = np.array([[mean[0, 0]], [mean[0, 1]], [yaw[0]], [(u_hi[0] + u_lo[0]) / 2], [(v_hi[0] + v_lo[0]) / 2],
+                    [u_hi[0] - u_lo[0]], [v_hi[0] - v_lo[0]], [z_mean[0]]])
+    centre = _box_centres(box, np.cos(box[2]), np.sin(box[2]))[0]
+    cells = np.unique(np.floor(pts[:, :2] / cell_m).astype(np.int64), axis=0)
+    return _new_object(np.ascontiguousarray(points, dtype=np.float32), cells, centre, float(yaw[0]),
+                       float(box[5, 0]), float(box[6, 0]))
+
+
 @njit(cache=True)
 def _object_boxes(pts, bounds, sums, cells, flat_labels, k, n, i0, j0):
     """``_objects``' arithmetic before the cosine and sine of each yaw, in one kernel:

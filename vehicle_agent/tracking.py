@@ -10,6 +10,13 @@ its third frame. Association is greedy nearest-first on the normalised innovatio
 but never narrower than ``GATE_MIN_M`` (a centroid jumps when the visible faces change)
 nor wider than ``GATE_MAX_M``; a detection outside every gate starts a new track.
 
+Two objects closer than the segmentation's reach (1.5 m) come out of perception as one
+detection: a car passing a waiting truck joins it for as long as they are that close.
+Before association, a detection that holds the predicted points of two tracks, one of
+them moving, whose predicted cells are not the same, is split between them
+(``split_merged``): each point goes to the track whose predicted points are nearest. So
+the mover keeps its id and its velocity through the pass, and the truck stands still.
+
 A partial view makes a centroid move as the visible faces change while the observer
 drives by, which would give a parked truck a phantom velocity. So a track counts as
 moving only when its cells confirm the filter's velocity: the cells it occupied
@@ -32,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from vehicle_agent.perception import DetectedObject
+from vehicle_agent.perception import DetectedObject, object_of_points
 
 MEAS_SIGMA_M = 0.3  # centroid noise per axis
 ACCEL_SIGMA_MPS2 = 3.0  # white-acceleration process noise
@@ -51,6 +58,11 @@ _OFFSETS = VOXEL_M * np.array([[a, b] for a in range(-2, 3) for b in range(-2, 3
 REGISTERED_SIGMA_MPS = 1.0  # a voxel over 0.2 s
 REGISTERED_POINTS = 400  # at most about this many old points are registered (every k-th)
 HISTORY = 10  # ticks of points kept per track: a mover at STILL_MPS shifts 1 m in 1 s
+HELD_SHARE = 0.5  # a track whose predicted points fall this much in a detection's cells is in it
+SHARED_CELLS = 0.5  # two tracks sharing this much of their predicted cells are one object, not two
+SPLIT_VOXEL_M = 0.25  # a merged detection's points go to the track whose predicted points are nearest, to this
+SPLIT_SAMPLE = 256  # at most about this many predicted points a track, for the tests (every k-th)
+_CODE = 1_000_003  # a lattice cell (i, j) as one int64, i * _CODE + j: |i|, |j| < 10^6 cells
 
 
 @dataclass(slots=True)
@@ -135,11 +147,14 @@ def _predicted_terms(p00: float, p01: float, p11: float, dt: float) -> tuple[flo
 @dataclass
 class Tracker:
     max_missed: int = 3
+    cell_m: float = 0.5  # the detections' lattice (``DetectedObject.cells``)
     tracks: list[Track] = field(default_factory=list)
     _next_id: int = 0
 
     def update(self, detections: list[DetectedObject], t_sim_s: float) -> list[Track]:
-        """Associate this tick's detections; returns the tracks seen this tick, by id."""
+        """Associate this tick's detections, merged ones split first (``split_merged``);
+        returns the tracks seen this tick, by id."""
+        detections = split_merged(self.tracks, detections, t_sim_s, self.cell_m)
         centroids = np.array([d.centroid[:2] for d in detections]).reshape(-1, 2)
         predicted = np.array([_predicted(tr, t_sim_s) for tr in self.tracks]).reshape(-1, 3)  # and the variance
         pairs = associate(predicted[:, :2], predicted[:, 2], centroids)
@@ -200,6 +215,140 @@ class Tracker:
         tr.points_history.append((t_sim_s, det.points_world))
         tr.hits += 1
         tr.missed = 0
+
+
+def split_merged(tracks: list[Track], detections: list[DetectedObject], t_sim_s: float,
+                 cell_m: float) -> list[DetectedObject]:
+    """``detections`` with each one that holds two or more objects cut into one part per
+    object. A detection holds a track when ``HELD_SHARE`` of the track's predicted points
+    (its last points, moved by its velocity to ``t_sim_s``) fall in the detection's cells.
+    It is cut when it holds a moving track and another track whose predicted cells are
+    not the mover's (less than ``SHARED_CELLS`` of either's in common: two tracks of one
+    object, such as a lost track and its successor, leave it whole); each point goes to
+    the track whose predicted points are nearest (``_nearest_owner``) and each part with
+    points becomes a detection, in the merged one's place. Only detections and tracks
+    whose boxes come near a mover's are tested."""
+    movers = [k for k, tr in enumerate(tracks) if tr.moving]
+    if not movers or not detections:
+        return detections
+    centre = np.array([_predicted(tr, t_sim_s)[:2] for tr in tracks])
+    reach = np.array([np.hypot(tr.detection.length_m, tr.detection.width_m) / 2 + 1.0 for tr in tracks])
+    det_xy = np.array([d.centroid[:2] for d in detections])
+    det_reach = np.array([np.hypot(d.length_m, d.width_m) / 2 for d in detections])
+    gap = np.hypot(*(det_xy[:, None, :] - centre[None, :, :]).transpose(2, 0, 1)) - det_reach[:, None] - reach[None, :]
+    near_mover = (gap[:, movers] <= 0.0).any(axis=1)
+    if not near_mover.any():
+        return detections
+    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def predicted(k: int) -> tuple[np.ndarray, np.ndarray]:  # track k's predicted points and their cells
+        if k not in cache:
+            xy = _predicted_points(tracks[k], t_sim_s)
+            cache[k] = xy, _cell_codes(xy[:: max(len(xy) // SPLIT_SAMPLE, 1)], cell_m)
+        return cache[k]
+
+    out: list[DetectedObject] = []
+    for d, det in enumerate(detections):
+        held = _held(det, [k for k in movers if gap[d, k] <= 0.0], np.flatnonzero(gap[d] <= 0.0).tolist(),
+                     predicted) if near_mover[d] else None
+        if held is None:
+            out.append(det)
+            continue
+        seeds = [predicted(k)[0] for k in held]
+        owner = _nearest_owner(det.points_world[:, :2].astype(np.float64), np.concatenate(seeds),
+                               np.repeat(np.arange(len(held)), [len(x) for x in seeds]), SPLIT_VOXEL_M)
+        parts = [det.points_world[owner == o] for o in range(len(held))]
+        if sum(len(part) > 0 for part in parts) < 2:
+            out.append(det)
+            continue
+        out += [object_of_points(part, cell_m) for part in parts if len(part)]
+    return out
+
+
+def _predicted_points(tr: Track, t_sim_s: float) -> np.ndarray:
+    """(n, 2) float64: the track's last points where its velocity takes them at ``t_sim_s``."""
+    return tr.detection.points_world[:, :2].astype(np.float64) + tr.velocity * (t_sim_s - tr.t_sim_s)
+
+
+def _cell_codes(xy: np.ndarray, cell_m: float) -> np.ndarray:
+    """The lattice cells (``_CODE``) of points ``xy``, one per point."""
+    ij = np.floor(xy / cell_m).astype(np.int64)
+    return ij[:, 0] * _CODE + ij[:, 1]
+
+
+def _held(det: DetectedObject, movers: list[int], near: list[int], predicted) -> list[int] | None:
+    """The tracks (indices) ``det`` holds, a mover first, if it holds a mover and another
+    object; ``movers`` and ``near`` the candidates, ``predicted(k)`` track k's points and cells."""
+    cells = det.cells[:, 0] * _CODE + det.cells[:, 1]
+
+    def holds(k: int) -> bool:
+        c = predicted(k)[1]
+        return len(c) > 0 and np.count_nonzero(np.isin(c, cells)) >= HELD_SHARE * len(c)
+
+    mover = next((k for k in movers if holds(k)), None)
+    if mover is None:
+        return None
+    held = [mover]
+    for k in near:
+        if k != mover and holds(k) and not any(_one_object(predicted(k)[1], predicted(h)[1]) for h in held):
+            held.append(k)
+    return held if len(held) >= 2 else None
+
+
+def _one_object(a: np.ndarray, b: np.ndarray) -> bool:
+    """Cells ``a`` and ``b`` share ``SHARED_CELLS`` of either's: the same object."""
+    return (np.count_nonzero(np.isin(a, b)) >= SHARED_CELLS * len(a)
+            or np.count_nonzero(np.isin(b, a)) >= SHARED_CELLS * len(b))
+
+
+@njit(cache=True)
+def _nearest_owner(xy, seeds, seed_owner, voxel):
+    """(n,) int64: for each point of ``xy``, the owner of the nearest seed, the distance
+    taken on a ``voxel`` lattice over the points' box (8-connected steps from each seed's
+    voxel, breadth first: ties go to the seed listed first). Seeds outside the box
+    are left out; with none inside, every point gets -1."""
+    n = xy.shape[0]
+    out = np.full(n, -1, dtype=np.int64)
+    if n == 0:
+        return out
+    lo_x, lo_y = xy[:, 0].min() - voxel, xy[:, 1].min() - voxel
+    nx = int(np.floor((xy[:, 0].max() - lo_x) / voxel)) + 2
+    ny = int(np.floor((xy[:, 1].max() - lo_y) / voxel)) + 2
+    label = np.full(nx * ny, -1, dtype=np.int64)
+    queue = np.empty(nx * ny, dtype=np.int64)
+    head, tail = 0, 0
+    for s in range(seeds.shape[0]):
+        i = int(np.floor((seeds[s, 0] - lo_x) / voxel))
+        j = int(np.floor((seeds[s, 1] - lo_y) / voxel))
+        if 0 <= i < nx and 0 <= j < ny and label[j * nx + i] == -1:
+            label[j * nx + i] = seed_owner[s]
+            queue[tail] = j * nx + i
+            tail += 1
+    while head < tail:
+        c = queue[head]
+        head += 1
+        i, j = c % nx, c // nx
+        for dj in range(-1, 2):
+            for di in range(-1, 2):
+                a, b = i + di, j + dj
+                if 0 <= a < nx and 0 <= b < ny and label[b * nx + a] == -1:
+                    label[b * nx + a] = label[c]
+                    queue[tail] = b * nx + a
+                    tail += 1
+    for p in range(n):
+        i = int(np.floor((xy[p, 0] - lo_x) / voxel))
+        j = int(np.floor((xy[p, 1] - lo_y) / voxel))
+        out[p] = label[j * nx + i]
+    return out
+
+
+def warm_kernels() -> None:
+    """Load the kernels of ``split_merged`` (they run only when a mover passes close by
+    another object, so a warm-up scene never reaches them): the nearest-owner labelling
+    and a part's box (``object_of_points``)."""
+    xy = np.zeros((1, 2))
+    _nearest_owner(xy, xy, np.zeros(1, dtype=np.int64), SPLIT_VOXEL_M)
+    object_of_points(np.zeros((1, 3), dtype=np.float32), 0.5)
 
 
 def registered_velocity(history, now: np.ndarray, t_sim_s: float, velocity: np.ndarray) -> np.ndarray | None:

@@ -27,7 +27,7 @@ from vehicle_agent.paths import arc_lengths
 from vehicle_agent.perception import build_grid, extract_objects
 from vehicle_agent.planning import Obstacle, first_blocked, first_conflict
 from vehicle_agent.scheduler.state import _merge_join
-from vehicle_agent.tracking import associate, registered_velocity
+from vehicle_agent.tracking import associate, registered_velocity, warm_kernels as warm_tracking_kernels
 
 
 def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
@@ -60,6 +60,7 @@ def warm_up(agent: Agent, agreement: AgreementConfig) -> None:
     if agent.planner.path_planner.blocked is not None:  # a vehicle that holds still plans no path
         first_blocked(np.array([[x, y], [x + 10.0, y]]), view.grid, agent.planner.path_planner.blocked)
     _warm_registration()
+    warm_tracking_kernels()
     associate(np.zeros((1, 2)), np.ones(1), np.zeros((1, 2)))  # the tracker pairs tracks from an object's second frame
     warm_fusion_kernels()
     warm_payload_kernels()

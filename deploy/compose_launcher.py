@@ -104,7 +104,8 @@ class Watch:
                 self.session.declare_subscriber(keys.world_tick(self.run_id), self._on_tick),
                 self.session.liveliness().declare_subscriber(keys.proxy_alive(self.run_id), self._on_proxy_token)]
         token = self.session.liveliness().declare_token(keys.participant_alive(self.run_id, NAME))
-        log.info("recorder subscribed; token %s declared: the world may start", keys.participant_alive(self.run_id, NAME))
+        log.info("recorder subscribed; token %s declared: the world may start",
+                 keys.participant_alive(self.run_id, NAME))
         try:
             return self._watch()
         finally:

@@ -19,8 +19,10 @@ and compares the judged outcome, closest distance and ticks (lock-step: they are
 time, failed or judged, with its MCAP finalized.
 
 Exit codes as ``autocast run``'s: 0 safe, 1 another judged outcome, 2 bad input,
-3 failed (also: the outcome differs from the one-host run's, something was left behind,
-or the fault case did not end in time), 130 interrupted.
+3 failed (also: the outcome differs from the one-host run's, the MCAP is not finalized,
+or something was left behind), 130 interrupted. With ``--fault``: 0 if the run ended
+within ``FAULT_BOUND_S`` of the router's kill (judged or failed) with its MCAP finalized
+and nothing left behind, else 3.
 """
 
 from __future__ import annotations
@@ -90,7 +92,6 @@ def start_daemon(log_path: Path, storage_driver: str = "") -> subprocess.Popen:
             tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
             raise RuntimeError(f"dockerd did not come up: {' '.join(tail)}")
         time.sleep(0.5)
-    log.info("started dockerd (pid %d, %s)", proc.pid, " ".join(cmd))
     return proc
 
 
@@ -165,8 +166,9 @@ def build_image(base: str, log_path: Path, tag: str = IMAGE) -> float:
                 if (REPO / name).exists():
                     tar.add(REPO / name, arcname=name, recursive=False)
         context.seek(0)
-        res = subprocess.run(["docker", "build", "-f", "deploy/Dockerfile", "--build-arg", f"BASE={base}", "--force-rm", "-t", tag,
-                              "-"], stdin=context, stdout=out, stderr=subprocess.STDOUT, timeout=BUILD_TIMEOUT_S)
+        res = subprocess.run(["docker", "build", "-f", "deploy/Dockerfile", "--build-arg", f"BASE={base}", "--force-rm",
+                              "-t", tag, "-"], stdin=context, stdout=out, stderr=subprocess.STDOUT,
+                             timeout=BUILD_TIMEOUT_S)
     if res.returncode != 0:
         raise RuntimeError(f"docker build failed (exit {res.returncode}; see {log_path})")
     return time.monotonic() - t0
@@ -314,8 +316,8 @@ def _with_daemon(args: argparse.Namespace, flags: list[str], cfg, report: Report
         if args.fault:
             vids = table.connected_vids(cfg.params)
             agent = table.agent_name(vids[1])  # on beta; gamma's router goes down with its agents
-            injector = FaultInjector(launcher, (agent, dc.container(agent)), ("router-gamma", dc.container("router-gamma")),
-                                     args.fault_ticks[0], args.fault_ticks[1])
+            router = ("router-gamma", dc.container("router-gamma"))
+            injector = FaultInjector(launcher, (agent, dc.container(agent)), router, *args.fault_ticks)
             injector.start()
         code = int(sh("docker", "wait", launcher, timeout=RUN_TIMEOUT_S).stdout.strip())
         ended = time.monotonic()
@@ -335,8 +337,8 @@ def _with_daemon(args: argparse.Namespace, flags: list[str], cfg, report: Report
         report.figures["down_s"] = round(time.monotonic() - t1, 1)
         if left:
             report.problems.append(f"left behind: {' '.join(left)}")
-        report.say(f"torn down in {report.figures['down_s']:.1f} s: "
-                   + (f"LEFT BEHIND {' '.join(left)}" if left else f"no container, network or volume of {dc.project} left"))
+        gone = f"LEFT BEHIND {' '.join(left)}" if left else f"no container, network or volume of {dc.project} left"
+        report.say(f"torn down in {report.figures['down_s']:.1f} s: {gone}")
     record = json.loads((cfg.run_dir / "outcome.json").read_text())
     report.figures["outcome"] = {k: record.get(k) for k in ("outcome", "failure", "closest_distance_m", "ticks",
                                                              "dead_agents", "wall_s")}
@@ -365,10 +367,12 @@ def _check_fault(injector: FaultInjector | None, code: int, ended: float, record
     report.say(f"killed {events[0][0]} at tick {events[0][1]} and {events[1][0]} at tick {events[1][1]}; the run "
                f"ended {after_s:.1f} s later (exit {code}: {record.get('outcome') or record.get('failure')})")
     if after_s > FAULT_BOUND_S:
-        report.problems.append(f"the run took {after_s:.0f} s after the router was killed (bound {FAULT_BOUND_S:.0f} s)")
+        report.problems.append(f"the run took {after_s:.0f} s after the router was killed "
+                               f"(bound {FAULT_BOUND_S:.0f} s)")
     if code not in (run.EXIT_SAFE, run.EXIT_JUDGED, run.EXIT_FAILED):
         report.problems.append(f"exit {code}")
-    return run.EXIT_FAILED if report.problems else code
+    report.figures["launcher_exit"] = code
+    return run.EXIT_FAILED if report.problems else 0  # the fault case passed, whatever the run's judgement
 
 
 def _compare(flags: list[str], cfg, record: dict, report: Report) -> None:
@@ -390,7 +394,8 @@ def _compare(flags: list[str], cfg, record: dict, report: Report) -> None:
         report.problems.append(f"differs from the one-host run (compose, one host): {diff}")
         report.say(f"DIFFERENT from the one-host run: {diff}")
     else:
-        report.say(f"same as the one-host run: {record['outcome']}, closest distance {record['closest_distance_m']:.3f} m, "
+        report.say(f"same as the one-host run: {record['outcome']}, closest distance "
+                   f"{record['closest_distance_m']:.3f} m, "
                    f"{record['ticks']} ticks ({', '.join(COMPARED[3:])} equal too)")
 
 

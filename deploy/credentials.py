@@ -12,8 +12,9 @@ lets every process subscribe, query and receive on the run's keys but put, reply
 hold liveliness tokens only on its own: an agent on its ``cmd``, ``report``,
 ``rejected`` and ``net/.../tx|up/<vid>`` keys and its token, the world on the world's
 keys and the scans, the proxy on ``net/.../rx``, ``net/stats``, the EMP downlinks and
-its token, the recorder on nothing, the launcher only on its liveliness token (a compose run's world waits for it). A session without a password
-from the dictionary cannot connect at all. Each process's Zenoh config is
+its token, the recorder on nothing, the launcher only its liveliness token (a compose
+run's world waits for it). A session without a password from the dictionary cannot
+connect at all. Each process's Zenoh config is
 ``<run>/credentials/<name>.zenoh.json5``; each router's (or the single-host hub's)
 ``<run>/credentials/router-<name>.zenoh.json5`` with the dictionary beside it.
 

@@ -633,7 +633,8 @@ def compose(cfg: table.RunConfig, hf: HostsFile, where: Path = REPO / "deploy") 
                      "--routers", str(len(hf.hosts)), "--run-dir", str(inside.run_dir), "--record", json.dumps(record)]
     if cfg.lock_down:
         launcher_args += ["--zenoh-config", str(SECRETS / f"{LAUNCHER}.zenoh.json5")]
-    services[LAUNCHER] = service(recorder_host, "deploy.compose_launcher", launcher_args, compose_secrets(cfg, LAUNCHER))
+    services[LAUNCHER] = service(recorder_host, "deploy.compose_launcher", launcher_args,
+                                 compose_secrets(cfg, LAUNCHER))
     services[LAUNCHER].update(depends_on=[recorder_host.router], **outputs)
     for spec, h in placed:
         services[spec.name] = service(h, spec.module, spec.args, compose_secrets(cfg, spec.name))

@@ -365,7 +365,8 @@ def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManag
     try:
         deadline = time.monotonic() + timeout_s
         while not all(p.matching_status.matching for p in probes):
-            if stop.is_set() or time.monotonic() > deadline or (procs is not None and table.RECORDER not in procs.running()):
+            gone = procs is not None and table.RECORDER not in procs.running()
+            if stop.is_set() or time.monotonic() > deadline or gone:
                 return False
             time.sleep(0.02)
         return True

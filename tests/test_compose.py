@@ -114,7 +114,8 @@ def test_the_local_hosts_place_every_process(tmp_path):
 @pytest.mark.parametrize("scheme", ["single", "autocast"])
 def test_a_run_in_containers_is_judged_as_on_one_host(tmp_path, scheme):
     flags = ["--scenario", "left_turn", "--vehicles", "10", "--seed", "0", "--scheme", scheme]
-    res = subprocess.run([sys.executable, "-m", "deploy.compose_run", *flags, "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO, timeout=3600)
+    res = subprocess.run([sys.executable, "-m", "deploy.compose_run", *flags, "--out", str(tmp_path)],
+                         capture_output=True, text=True, cwd=REPO, timeout=3600)
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["problems"] == [] and summary["same_as_one_host"] is True, res.stdout
     assert res.returncode == (0 if summary["outcome"]["outcome"] == "safe" else 1)

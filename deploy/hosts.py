@@ -623,8 +623,7 @@ def compose(cfg: table.RunConfig, hf: HostsFile, where: Path = REPO / "deploy") 
             tls = [f"{h.tls_port or h.port + 1}:{h.tls_port or h.port + 1}"] if cfg.lock_down else []
             services[h.router]["ports"] = [f"{h.port}:{h.port}", *tls]
     placed = place(inside, hf, hub_of=lambda h: f"tcp/{h.router}:{h.port}")
-    on = {spec.name: h for spec, h in placed}
-    recorder_host = on[table.RECORDER]
+    recorder_host = next(h for spec, h in placed if spec.name == table.RECORDER)
     hosts_of = {spec.name: h.name for spec, h in placed} | {LAUNCHER: recorder_host.name}
     record = {"scenario": cfg.params.scenario, "vehicles": cfg.params.vehicles, "seed": cfg.params.seed,
               "scheme": cfg.scheme, "model": cfg.model.label(), "model_settings": cfg.model.settings(),

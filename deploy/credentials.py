@@ -12,8 +12,9 @@ lets every process subscribe, query and receive on the run's keys but put, reply
 hold liveliness tokens only on its own: an agent on its ``cmd``, ``report``,
 ``rejected`` and ``net/.../tx|up/<vid>`` keys and its token, the world on the world's
 keys and the scans, the proxy on ``net/.../rx``, ``net/stats``, the EMP downlinks and
-its token, the recorder and the launcher on nothing. A session without a password
-from the dictionary cannot connect at all. Each process's Zenoh config is
+its token, the recorder on nothing, the launcher only its liveliness token (a compose
+run's world waits for it). A session without a password from the dictionary cannot
+connect at all. Each process's Zenoh config is
 ``<run>/credentials/<name>.zenoh.json5``; each router's (or the single-host hub's)
 ``<run>/credentials/router-<name>.zenoh.json5`` with the dictionary beside it.
 
@@ -125,7 +126,9 @@ def own_keys(cfg: table.RunConfig, name: str) -> tuple[list[str], list[str]]:
         vid = int(name[len("agent"):])
         return [keys.cmd(run, vid), keys.report(run, vid), keys.rejected(run, vid), keys.net_ctrl_tx(run, vid),
                 keys.net_data_tx(run, vid), keys.net_emp_up(run, vid)], [keys.alive(run, vid)]
-    return [], []  # the recorder, the launcher: they only listen
+    if name == LAUNCHER:  # its token tells the world that the recorder is up (deploy.compose_launcher)
+        return [], [keys.participant_alive(run, LAUNCHER)]
+    return [], []  # the recorder: it only listens
 
 
 def access_control(cfg: table.RunConfig, processes: list[str], routers: list[str]) -> dict:

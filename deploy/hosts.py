@@ -34,7 +34,7 @@ import time
 import tomllib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import zenoh
@@ -464,6 +464,12 @@ def routers_seen(session: zenoh.Session) -> list[dict]:
     return out
 
 
+def router_links(session: zenoh.Session) -> dict[str, int]:
+    """Each router the launcher reaches (by zid) and how many other routers it is linked to."""
+    return {r.get("zid"): sum(s.get("whatami") == "router" for s in r.get("sessions", []))
+            for r in routers_seen(session)}
+
+
 def wait_for_mesh(session: zenoh.Session, hf: HostsFile, procs: HostProcessManager, timeout_s: float,
                   stop: threading.Event) -> str | None:
     """None once every router answers and is linked to every other; else why not."""
@@ -473,8 +479,7 @@ def wait_for_mesh(session: zenoh.Session, hf: HostsFile, procs: HostProcessManag
         for spec, rc in procs.died():
             tail = (procs.log_dir / f"{spec.name}.log").read_text(errors="replace").strip().splitlines()[-1:]
             return f"{spec.name} exited (code {rc}) before the run: {' '.join(tail) or 'no output'}"
-        seen = routers_seen(session)
-        links = {r.get("zid"): sum(s.get("whatami") == "router" for s in r.get("sessions", [])) for r in seen}
+        links = router_links(session)
         if len(links) == n and all(k >= n - 1 for k in links.values()):
             return None
         if stop.is_set():
@@ -577,42 +582,124 @@ def plan(hf: HostsFile, placed: list[tuple[ProcSpec, Host]], cfg: table.RunConfi
 # ---------------------------------------------------------------------------- docker compose
 
 IMAGE = "autocast-py"
+LAUNCHER = "launcher"  # the compose file's launcher (deploy.compose_launcher), on the recorder's host
+SECRETS = PurePosixPath("/run/secrets")  # where compose mounts each service's secrets
+APP = PurePosixPath("/app")  # the image's checkout (deploy/Dockerfile)
 
 
-def compose(cfg: table.RunConfig, hf: HostsFile) -> dict[str, Any]:
-    """A compose project for this run and hosts: one service per process, a router per host.
+def compose(cfg: table.RunConfig, hf: HostsFile, where: Path = REPO / "deploy") -> dict[str, Any]:
+    """A compose file for this run and hosts (``where``: its directory; paths in it are
+    relative to that): one service per process, a router per host, and the launcher.
 
-    Processes reach their host's router by service name; routers reach each other by
-    the hosts' addresses, on published ports. Each host starts its own services.
+    Processes reach their host's router by service name; routers reach each other at the
+    hosts' addresses (published ports), or by service name where a host's address is its
+    router's name (every "host" on one Docker engine). Locked down, each service gets
+    only its own credentials, as compose secrets under /run/secrets. The recorder and
+    the launcher write into the run's directory on their host (a bind mount).
     """
-    cfg = replace(cfg, lock_down=False, signing=False)  # no credentials in images (docs/multihost.md)
-    build = {"context": "..", "dockerfile": "deploy/Dockerfile"}
+    cfg = replace(cfg, wait_for=(*cfg.wait_for, LAUNCHER))  # tick 0 waits for the launcher (the recorder is up)
+    inside = replace(cfg, run_dir=Path("runs") / cfg.run_id)  # the run's directory in the container
+    creds = str(table.credentials_dir(inside)) + "/"
+    build = {"context": os.path.relpath(REPO, where), "dockerfile": "deploy/Dockerfile",
+             "args": {"BASE": "${AUTOCAST_BASE_IMAGE:-python:3.11-slim}"}}
+    run_dir = _relative(cfg.run_dir, where)
+    outputs = {"volumes": [f"{run_dir}:{APP / inside.run_dir}"],  # the MCAP and outcome.json, on the host
+               "tmpfs": [str(APP / table.credentials_dir(inside))]}  # the run's credentials stay out of sight
+
+    def service(h: Host, module: str, args: Sequence[str], secrets: list[str]) -> dict[str, Any]:
+        out = {"image": IMAGE, "build": build, "command": ["python", "-m", module, *(
+            str(SECRETS) + "/" + a[len(creds):] if a.startswith(creds) else a for a in args)],
+            "labels": {"autocast.host": h.name}}
+        if secrets and cfg.lock_down:
+            out["secrets"] = secrets
+        return out
+
     services: dict[str, Any] = {}
     for h in hf.hosts:
-        spec = router_spec(replace(h, listen="0.0.0.0"), hf)
-        services[h.router] = {"image": IMAGE, "build": build, "command": ["python", "-m", spec.module, *spec.args],
-                              "ports": [f"{h.port}:{h.port}"], "labels": {"autocast.host": h.name}}
-    for spec, h in place(cfg, hf, hub_of=lambda h: f"tcp/{h.router}:{h.port}"):
-        service = {"image": IMAGE, "build": build, "command": ["python", "-m", spec.module, *spec.args],
-                   "depends_on": [h.router], "labels": {"autocast.host": h.name}}
+        config = table.zenoh_config_path(inside, h.router) if cfg.lock_down else None
+        spec = router_spec(replace(h, listen="0.0.0.0"), hf, config)
+        services[h.router] = service(h, spec.module, spec.args, compose_secrets(cfg, h.router))
+        if h.address != h.router:  # other machines reach it on this host's published port(s)
+            tls = [f"{h.tls_port or h.port + 1}:{h.tls_port or h.port + 1}"] if cfg.lock_down else []
+            services[h.router]["ports"] = [f"{h.port}:{h.port}", *tls]
+    placed = place(inside, hf, hub_of=lambda h: f"tcp/{h.router}:{h.port}")
+    recorder_host = next(h for spec, h in placed if spec.name == table.RECORDER)
+    hosts_of = {spec.name: h.name for spec, h in placed} | {LAUNCHER: recorder_host.name}
+    record = {"scenario": cfg.params.scenario, "vehicles": cfg.params.vehicles, "seed": cfg.params.seed,
+              "scheme": cfg.scheme, "model": cfg.model.label(), "model_settings": cfg.model.settings(),
+              "signed": cfg.signing, "lock_down": cfg.lock_down, "hosts": hosts_of}
+    launcher_args = ["--run-id", cfg.run_id, "--connect", f"tcp/{recorder_host.router}:{recorder_host.port}",
+                     "--routers", str(len(hf.hosts)), "--run-dir", str(inside.run_dir), "--record", json.dumps(record)]
+    if cfg.lock_down:
+        launcher_args += ["--zenoh-config", str(SECRETS / f"{LAUNCHER}.zenoh.json5")]
+    services[LAUNCHER] = service(recorder_host, "deploy.compose_launcher", launcher_args,
+                                 compose_secrets(cfg, LAUNCHER))
+    services[LAUNCHER].update(depends_on=[recorder_host.router], **outputs)
+    for spec, h in placed:
+        services[spec.name] = service(h, spec.module, spec.args, compose_secrets(cfg, spec.name))
+        services[spec.name]["depends_on"] = [h.router]
         if spec.name == table.RECORDER:
-            service["volumes"] = ["../runs:/app/runs"]  # the MCAP lands in the checkout's runs/
-        services[spec.name] = service
-    return {"name": f"autocast-{cfg.run_id.lower()}", "services": services}
+            services[spec.name].update(outputs)
+    project: dict[str, Any] = {"services": services}
+    if cfg.lock_down:
+        names = sorted({s for service_ in services.values() for s in service_.get("secrets", [])})
+        files = _relative(table.credentials_dir(cfg), where)
+        project["secrets"] = {name: {"file": f"{files}/{name}"} for name in names}
+    return project
 
 
-def compose_text(cfg: table.RunConfig, hf: HostsFile, how: str) -> str:
-    project = compose(cfg, hf)
+def _relative(path: Path, where: Path) -> str:
+    """``path`` relative to ``where``, as compose takes a host path (``./`` or ``../`` first)."""
+    rel = os.path.relpath(path.resolve(), where.resolve())
+    return rel if rel.startswith("..") else f"./{rel}"
+
+
+def compose_secrets(cfg: table.RunConfig, name: str) -> list[str]:
+    """The credential files service ``name`` gets (file names in the run's credentials directory)."""
+    if not cfg.lock_down:
+        return []
+    if name.startswith("router-"):
+        from deploy.credentials import tls_files
+
+        return ["zenoh-users.txt", table.zenoh_config_path(cfg, name).name, *(p.name for p in tls_files(cfg, name))]
+    return [table.zenoh_config_path(cfg, name).name]
+
+
+def project_name(cfg: table.RunConfig) -> str:
+    return f"autocast-{cfg.run_id.lower()}"
+
+
+def compose_text(cfg: table.RunConfig, hf: HostsFile, how: str, where: Path = REPO / "deploy",
+                 path: str = "deploy/docker-compose.yml") -> str:
+    project = compose(cfg, hf, where)
     by_host = {h.name: [n for n, s in project["services"].items() if s["labels"]["autocast.host"] == h.name]
                for h in hf.hosts}
-    world_host = project["services"][table.WORLD]["labels"]["autocast.host"]
-    head = [f"# Generated by: {how}", "# One service per process of the run, a Zenoh router per host (explicit "
-            "endpoints, no multicast).", "# Build the image on each host, then start that host's services:"]
+    up = f"docker compose -p {project_name(cfg)} -f {path}"
+    head = [f"# Generated by: {how}",
+            "# One service per process of the run, a Zenoh router per host (explicit endpoints, no multicast) and",
+            "# the launcher, which writes outcome.json beside the MCAP and exits with autocast run's exit code.",
+            "# On each host: build the image (docker build -f deploy/Dockerfile -t autocast-py .)"
+            + (f", copy {table.credentials_dir(cfg)}/ there" if cfg.lock_down else "")
+            + ", then start that host's services:"]
     for name, services in by_host.items():
-        extra = " --exit-code-from world" if name == world_host else ""
-        head.append(f"#   {name}: docker compose -f deploy/docker-compose.yml up --build{extra} {' '.join(services)}")
-    head.append("# The world prints the judged outcome (docker compose logs world); agents and the proxy exit on it.")
+        head.append(f"#   {name}: {up} up -d {' '.join(services)}")
+    head.append(f"# Wait: docker wait $({up} ps -q {LAUNCHER})  (its exit code is the run's); then on every host: "
+                f"{up} down")
     return "\n".join(head) + "\n" + _yaml(project) + "\n"
+
+
+def write_compose(cfg: table.RunConfig, hf: HostsFile, out: Path, how: str) -> None:
+    """The compose file, and locked down the run's credentials (deploy.credentials) with
+    the routers' configs naming the files where the containers see them."""
+    if cfg.lock_down:
+        from deploy import credentials
+
+        written = credentials.lock_down(cfg, {h.router: h.address for h in hf.hosts})
+        host_dir = str(table.credentials_dir(cfg)) + "/"
+        for h in hf.hosts:
+            path = written[h.router]
+            path.write_text(path.read_text().replace(json.dumps(host_dir)[1:-1], f"{SECRETS}/"))
+    out.write_text(compose_text(cfg, hf, how, out.parent, str(out)))
 
 
 def _yaml(obj: dict[str, Any], depth: int = 0) -> str:
@@ -620,7 +707,7 @@ def _yaml(obj: dict[str, Any], depth: int = 0) -> str:
     pad, lines = "  " * depth, []
     for key, value in obj.items():
         if isinstance(value, dict):
-            lines += [f"{pad}{key}:", _yaml(value, depth + 1)]
+            lines += [f"{pad}{json.dumps(key) if '.' in key else key}:", _yaml(value, depth + 1)]
         elif isinstance(value, list):
             lines.append(f"{pad}{key}: [{', '.join(json.dumps(v) for v in value)}]")
         else:
@@ -643,7 +730,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level if level in logging.getLevelNamesMapping() else "INFO",
                         format="autocast deploy: %(message)s")
     try:
-        opts = run.options_from(args, hub="")
+        opts = run.options_from(args, hub="", fresh=not args.compose)
         hf = load_hosts(args.hosts)
         placed = place(opts.run, hf)
     except run.InputError as exc:
@@ -653,15 +740,15 @@ def main(argv: list[str] | None = None) -> int:
         print(plan(hf, placed, opts.run))
         return 0
     if args.compose:
-        if args.sign:  # asked for, and it would silently not be: the images hold no credentials
-            print("error: --sign needs each run's credentials, which --compose does not write (docs/multihost.md)",
+        if args.sign:  # asked for, and it would silently not be: the V2X credentials are not made into secrets
+            print("error: --sign: compose files do not carry the vehicles' V2X credentials (docs/multihost.md)",
                   file=sys.stderr)
             return run.EXIT_BAD_INPUT
-        if args.lock_down:
-            print("note: the compose file is not locked down (--compose writes no credentials; docs/multihost.md)",
-                  file=sys.stderr)
         how = shlex.join(["autocast", "deploy", *(sys.argv[2:] if argv is None else argv)])
-        Path(args.compose).write_text(compose_text(opts.run, hf, how))
+        write_compose(opts.run, hf, Path(args.compose), how)
+        if args.lock_down:
+            print(f"credentials in {table.credentials_dir(opts.run)}/ (each service gets its own as a compose secret)",
+                  file=sys.stderr)
         print(f"wrote {args.compose}")
         return 0
     stop = threading.Event()

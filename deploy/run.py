@@ -176,8 +176,10 @@ def scenario_from(args: argparse.Namespace) -> ScenarioParams:
     return params
 
 
-def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
-    """Every flag checked, nothing started; raises ``InputError`` naming the field."""
+def options_from(args: argparse.Namespace, hub: str, fresh: bool = True) -> LaunchOptions:
+    """Every flag checked, nothing started; raises ``InputError`` naming the field.
+    ``fresh``: the run's directory must not exist yet (a file that only describes the
+    run, such as a compose file, may be made again)."""
     from vehicle_agent.__main__ import SCHEMES
 
     params = scenario_from(args)
@@ -198,7 +200,7 @@ def options_from(args: argparse.Namespace, hub: str) -> LaunchOptions:
     except ValueError as exc:
         raise InputError(f"wait_for: {exc}") from None
     run_dir = Path(args.out) / run_id
-    if run_dir.exists():
+    if fresh and run_dir.exists():
         raise InputError(f"run_id: {run_dir} already exists")
     try:
         model = model_from(args)
@@ -354,15 +356,17 @@ def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5,
     raise AssertionError("unreachable")
 
 
-def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManager, timeout_s: float,
+def wait_recorder_ready(session: zenoh.Session, run_id: str, procs: ProcessManager | None, timeout_s: float,
                         stop: threading.Event) -> bool:
     """True once subscribers matching the world's tick and outcome keys are on the hub
-    (only the recorder is up): the first tick and the last word are both recorded."""
+    (only the recorder is up): the first tick and the last word are both recorded.
+    ``procs``: gives up early once the recorder has exited (None: the recorder runs elsewhere)."""
     probes = [session.declare_publisher(key) for key in (keys.world_tick(run_id), keys.world_outcome(run_id))]
     try:
         deadline = time.monotonic() + timeout_s
         while not all(p.matching_status.matching for p in probes):
-            if stop.is_set() or time.monotonic() > deadline or table.RECORDER not in procs.running():
+            gone = procs is not None and table.RECORDER not in procs.running()
+            if stop.is_set() or time.monotonic() > deadline or gone:
                 return False
             time.sleep(0.02)
         return True
@@ -596,11 +600,18 @@ def report(res: RunResult, cfg: table.RunConfig, as_json: bool, wall_s: float) -
             record["interrupted"] = True
         print(f"run {'interrupted' if res.exit_code == EXIT_INTERRUPTED else 'failed'}: {res.failure}",
               file=sys.stderr)
-    record = json_ready(record)
-    if cfg.run_dir.is_dir():  # whole or not at all: a sweep, a cluster worker or a test may be polling for it
-        part = cfg.run_dir / "outcome.json.part"
-        part.write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
-        os.replace(part, cfg.run_dir / "outcome.json")
+    record = write_record(cfg.run_dir, record)
     if as_json:
         print(json.dumps(record, allow_nan=False), flush=True)
     return res.exit_code
+
+
+def write_record(run_dir: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """``run_dir/outcome.json``, whole or not at all (a sweep, a cluster worker or a test
+    may be polling for it), if the directory exists; returns the record as written."""
+    record = json_ready(record)
+    if run_dir.is_dir():
+        part = run_dir / "outcome.json.part"
+        part.write_text(json.dumps(record, allow_nan=False, indent=1) + "\n")
+        os.replace(part, run_dir / "outcome.json")
+    return record

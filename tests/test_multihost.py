@@ -135,44 +135,52 @@ def test_dry_run_prints_every_hosts_router_and_command(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
 
 
-# ---------------------------------------------------------------------------- docker compose (not run: no engine here)
+# ---------------------------------------------------------------------------- docker compose (run: tests/test_compose.py)
 
 
-def test_compose_refuses_to_sign_and_says_it_is_not_locked_down(tmp_path, capsys):
-    """The images hold no credentials: a signed run asked for is refused, not run unsigned."""
+def test_compose_refuses_to_sign_and_is_locked_down(tmp_path, capsys):
+    """A signed run asked for is refused, not run unsigned; the file is locked down by
+    default, its credentials beside the run's outputs on the host, not in the image."""
     out = tmp_path / "compose.yml"
-    flags = ["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--compose", str(out)]
+    flags = ["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--run-id", "c", "--compose", str(out)]
     assert hosts.main([*flags, "--sign"]) == 2 and not out.exists()
     assert "--sign" in capsys.readouterr().err
     assert hosts.main(flags) == 0 and out.exists()
-    assert "not locked down" in capsys.readouterr().err
+    assert (tmp_path / "c" / "credentials" / "router-beta.zenoh.json5").exists()
+    assert "/run/secrets/zenoh-users.txt" in (tmp_path / "c" / "credentials" / "router-beta.zenoh.json5").read_text()
+    assert hosts.main(flags) == 0  # made again: a compose file only describes the run
 
 
 def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_path):
     yaml = pytest.importorskip("yaml")
     checked_in = yaml.safe_load(COMPOSE.read_text())
     hf = load_hosts(EXAMPLE)
-    generated = yaml.safe_load(hosts.compose_text(options(tmp_path, "--run-id", "compose").run, hf, "test"))
-    assert generated == hosts.compose(options(tmp_path, "--run-id", "compose").run, hf)  # the emitter is YAML
+    cfg = options(tmp_path, "--run-id", "compose", "--lock-down").run
+    generated = yaml.safe_load(hosts.compose_text(cfg, hf, "test"))
+    assert generated == hosts.compose(cfg, hf)  # the emitter is YAML
     services = checked_in["services"]
     assert services.keys() == generated["services"].keys()
     for name, s in generated["services"].items():  # the checked-in file is what the launcher makes today
-        assert services[name]["command"] == [w.replace(str(tmp_path), "runs") for w in s["command"]], name
+        assert services[name]["command"] == s["command"], name
     routers = {f"router-{h.name}": h for h in hf.hosts}
     procs = [n for n in services if n not in routers]
-    assert sorted(procs) == sorted(["recorder", "world", "proxy"] + [f"agent{v}" for v in range(5)])
+    assert sorted(procs) == sorted(["launcher", "recorder", "world", "proxy"] + [f"agent{v}" for v in range(5)])
     for name, h in routers.items():
         cmd = services[name]["command"]
         assert cmd[:3] == ["python", "-m", "deploy.router"] and f"tcp/0.0.0.0:{h.port}" in cmd
         earlier = [o for o in hf.hosts[:hf.hosts.index(h)]]
-        assert [cmd[i + 1] for i, w in enumerate(cmd) if w == "--connect"] == [o.endpoint for o in earlier]
-        assert services[name]["ports"] == [f"{h.port}:{h.port}"]
+        assert [cmd[i + 1] for i, w in enumerate(cmd) if w == "--connect"] == [o.tls_endpoint for o in earlier]
+        assert services[name]["ports"] == [f"{h.port}:{h.port}", f"{h.port + 1}:{h.port + 1}"]
     for name in procs:
         s = services[name]
         (router,) = s["depends_on"]
         assert router == f"router-{s['labels']['autocast.host']}"
         assert s["command"][s["command"].index("--connect") + 1] == f"tcp/{router}:7447"
-        assert s["build"] == {"context": "..", "dockerfile": "deploy/Dockerfile"}
+        assert s["command"][s["command"].index("--zenoh-config") + 1] == f"/run/secrets/{name}.zenoh.json5"
+        assert s["secrets"] == [f"{name}.zenoh.json5"]  # its own credentials only
+        assert s["build"]["context"] == ".." and s["build"]["dockerfile"] == "deploy/Dockerfile"
+    assert "launcher" in services["world"]["command"][services["world"]["command"].index("--wait-for") + 1:]
+    assert services["launcher"]["labels"]["autocast.host"] == "alpha"  # the recorder's host: outputs together
     assert (REPO / "deploy" / "Dockerfile").exists()
 
 

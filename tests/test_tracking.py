@@ -329,3 +329,11 @@ def test_each_point_goes_to_an_owner_of_a_nearest_seed_on_the_lattice(points, se
     for p in range(len(xy)):
         nearest = dist[p].min()
         assert owner[p] in set(owner_of[inside][dist[p] == nearest].tolist())
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.floats(-300, 300), st.floats(-300, 300)), min_size=1, max_size=60))
+def test_a_parts_cells_are_its_points_cells_each_once_in_order(points):
+    pts = np.array([[x, y, 1.0] for x, y in points], dtype=np.float32)
+    want = np.unique(np.floor(pts[:, :2].astype(np.float64) / 0.5).astype(np.int64), axis=0)
+    assert object_of_points(pts, 0.5).cells.tolist() == want.tolist()

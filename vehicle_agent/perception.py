@@ -344,9 +344,33 @@ def object_of_points(points: np.ndarray, cell_m: float) -> DetectedObject:
     box = np.array([[mean[0, 0]], [mean[0, 1]], [yaw[0]], [(u_hi[0] + u_lo[0]) / 2], [(v_hi[0] + v_lo[0]) / 2],
                     [u_hi[0] - u_lo[0]], [v_hi[0] - v_lo[0]], [z_mean[0]]])
     centre = _box_centres(box, np.cos(box[2]), np.sin(box[2]))[0]
-    cells = np.unique(np.floor(pts[:, :2] / cell_m).astype(np.int64), axis=0)
+    cells = _cells_of(pts, cell_m)
     return _new_object(np.ascontiguousarray(points, dtype=np.float32), cells, centre, float(yaw[0]),
                        float(box[5, 0]), float(box[6, 0]))
+
+
+@njit(cache=True)
+def _cells_of(pts, cell_m):
+    """The lattice cells (i, j) of points ``pts`` (n >= 1), each once, ordered by i then j:
+    ``np.unique(np.floor(pts[:, :2] / cell_m).astype(np.int64), axis=0)`` without the
+    sort (a cell window's marks, read in order)."""
+    n = pts.shape[0]
+    ij = np.empty((n, 2), dtype=np.int64)
+    for p in range(n):
+        ij[p, 0] = np.int64(np.floor(pts[p, 0] / cell_m))
+        ij[p, 1] = np.int64(np.floor(pts[p, 1] / cell_m))
+    i_lo, j_lo = ij[:, 0].min(), ij[:, 1].min()
+    mark = np.zeros((ij[:, 0].max() - i_lo + 1, ij[:, 1].max() - j_lo + 1), dtype=np.bool_)
+    for p in range(n):
+        mark[ij[p, 0] - i_lo, ij[p, 1] - j_lo] = True
+    out = np.empty((np.count_nonzero(mark), 2), dtype=np.int64)
+    m = 0
+    for a in range(mark.shape[0]):
+        for b in range(mark.shape[1]):
+            if mark[a, b]:
+                out[m, 0], out[m, 1] = a + i_lo, b + j_lo
+                m += 1
+    return out
 
 
 @njit(cache=True)

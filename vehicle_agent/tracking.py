@@ -62,7 +62,6 @@ HELD_SHARE = 0.5  # a track whose predicted points fall this much in a detection
 SHARED_CELLS = 0.5  # two tracks sharing this much of their predicted cells are one object, not two
 SPLIT_VOXEL_M = 0.25  # a merged detection's points go to the track whose predicted points are nearest, to this
 SPLIT_SAMPLE = 256  # at most about this many predicted points a track, for the tests (every k-th)
-_CODE = 1_000_003  # a lattice cell (i, j) as one int64, i * _CODE + j: |i|, |j| < 10^6 cells
 
 
 @dataclass(slots=True)
@@ -226,8 +225,8 @@ def split_merged(tracks: list[Track], detections: list[DetectedObject], t_sim_s:
     not the mover's (less than ``SHARED_CELLS`` of either's in common: two tracks of one
     object, such as a lost track and its successor, leave it whole); each point goes to
     the track whose predicted points are nearest (``_nearest_owner``) and each part with
-    points becomes a detection, in the merged one's place. Only detections and tracks
-    whose boxes come near a mover's are tested."""
+    points becomes a detection, in the merged one's place. Only detections whose boxes
+    come near a mover's and another track's are tested."""
     movers = [k for k, tr in enumerate(tracks) if tr.moving]
     if not movers or not detections:
         return detections
@@ -236,21 +235,23 @@ def split_merged(tracks: list[Track], detections: list[DetectedObject], t_sim_s:
     det_xy = np.array([d.centroid[:2] for d in detections])
     det_reach = np.array([np.hypot(d.length_m, d.width_m) / 2 for d in detections])
     gap = np.hypot(*(det_xy[:, None, :] - centre[None, :, :]).transpose(2, 0, 1)) - det_reach[:, None] - reach[None, :]
-    near_mover = (gap[:, movers] <= 0.0).any(axis=1)
+    near_mover = (gap[:, movers] <= 0.0).any(axis=1) & (np.count_nonzero(gap <= 0.0, axis=1) >= 2)  # and another
     if not near_mover.any():
         return detections
-    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def predicted(k: int) -> tuple[np.ndarray, np.ndarray]:  # track k's predicted points and their cells
+    def predicted(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Track k's predicted points, every k-th of them (``SPLIT_SAMPLE``) and their cells."""
         if k not in cache:
             xy = _predicted_points(tracks[k], t_sim_s)
-            cache[k] = xy, _cell_codes(xy[:: max(len(xy) // SPLIT_SAMPLE, 1)], cell_m)
+            sample = np.ascontiguousarray(xy[:: max(len(xy) // SPLIT_SAMPLE, 1)])
+            cache[k] = xy, sample, np.floor(sample / cell_m).astype(np.int64)
         return cache[k]
 
     out: list[DetectedObject] = []
     for d, det in enumerate(detections):
         held = _held(det, [k for k in movers if gap[d, k] <= 0.0], np.flatnonzero(gap[d] <= 0.0).tolist(),
-                     predicted) if near_mover[d] else None
+                     predicted, cell_m) if near_mover[d] else None
         if held is None:
             out.append(det)
             continue
@@ -270,35 +271,45 @@ def _predicted_points(tr: Track, t_sim_s: float) -> np.ndarray:
     return tr.detection.points_world[:, :2].astype(np.float64) + tr.velocity * (t_sim_s - tr.t_sim_s)
 
 
-def _cell_codes(xy: np.ndarray, cell_m: float) -> np.ndarray:
-    """The lattice cells (``_CODE``) of points ``xy``, one per point."""
-    ij = np.floor(xy / cell_m).astype(np.int64)
-    return ij[:, 0] * _CODE + ij[:, 1]
-
-
-def _held(det: DetectedObject, movers: list[int], near: list[int], predicted) -> list[int] | None:
+def _held(det: DetectedObject, movers: list[int], near: list[int], predicted, cell_m: float) -> list[int] | None:
     """The tracks (indices) ``det`` holds, a mover first, if it holds a mover and another
-    object; ``movers`` and ``near`` the candidates, ``predicted(k)`` track k's points and cells."""
-    cells = det.cells[:, 0] * _CODE + det.cells[:, 1]
-
+    object; ``movers`` and ``near`` the candidates, ``predicted(k)`` track k's points, a
+    sample of them and the sample's cells."""
     def holds(k: int) -> bool:
-        c = predicted(k)[1]
-        return len(c) > 0 and np.count_nonzero(np.isin(c, cells)) >= HELD_SHARE * len(c)
+        sample = predicted(k)[1]
+        return len(sample) > 0 and _share_in(det.cells, sample, cell_m) >= HELD_SHARE
+
+    def one_object(k: int, h: int) -> bool:  # their cells share SHARED_CELLS of either's
+        (_, a, a_cells), (_, b, b_cells) = predicted(k), predicted(h)
+        return _share_in(b_cells, a, cell_m) >= SHARED_CELLS or _share_in(a_cells, b, cell_m) >= SHARED_CELLS
 
     mover = next((k for k in movers if holds(k)), None)
     if mover is None:
         return None
     held = [mover]
     for k in near:
-        if k != mover and holds(k) and not any(_one_object(predicted(k)[1], predicted(h)[1]) for h in held):
+        if k != mover and holds(k) and not any(one_object(k, h) for h in held):
             held.append(k)
     return held if len(held) >= 2 else None
 
 
-def _one_object(a: np.ndarray, b: np.ndarray) -> bool:
-    """Cells ``a`` and ``b`` share ``SHARED_CELLS`` of either's: the same object."""
-    return (np.count_nonzero(np.isin(a, b)) >= SHARED_CELLS * len(a)
-            or np.count_nonzero(np.isin(b, a)) >= SHARED_CELLS * len(b))
+@njit(cache=True)
+def _share_in(cells, xy, cell_m):
+    """The share of points ``xy`` (n >= 1, 2) whose lattice cell (``floor(xy / cell_m)``)
+    is one of ``cells`` (m, 2); 0.0 without cells."""
+    if cells.shape[0] == 0:
+        return 0.0
+    i_lo, i_hi, j_lo, j_hi = cells[:, 0].min(), cells[:, 0].max(), cells[:, 1].min(), cells[:, 1].max()
+    mark = np.zeros((i_hi - i_lo + 1, j_hi - j_lo + 1), dtype=np.bool_)
+    for c in range(cells.shape[0]):
+        mark[cells[c, 0] - i_lo, cells[c, 1] - j_lo] = True
+    hit = 0
+    for p in range(xy.shape[0]):
+        i = np.int64(np.floor(xy[p, 0] / cell_m)) - i_lo
+        j = np.int64(np.floor(xy[p, 1] / cell_m)) - j_lo
+        if 0 <= i < mark.shape[0] and 0 <= j < mark.shape[1] and mark[i, j]:
+            hit += 1
+    return hit / xy.shape[0]
 
 
 @njit(cache=True)
@@ -348,6 +359,7 @@ def warm_kernels() -> None:
     and a part's box (``object_of_points``)."""
     xy = np.zeros((1, 2))
     _nearest_owner(xy, xy, np.zeros(1, dtype=np.int64), SPLIT_VOXEL_M)
+    _share_in(np.zeros((1, 2), dtype=np.int64), xy, 0.5)
     object_of_points(np.zeros((1, 3), dtype=np.float32), 0.5)
 
 

@@ -280,10 +280,14 @@ def bundle_name(frames: list[bytes]) -> str:
 
 class VerdictTable:
     """The verdicts on one bundle (``Verdicts.table``): a directory named by the bundle's
-    hash, an empty file ``<place>_<offset>_<length>`` for each frame found authentic,
-    with where its body lies in the frame. A name appears whole or not at all. The
-    table is read once (``spans``); a frame not in it yet is looked for by its name
-    (``has``) before the receiver checks it itself, and added (``put``) if it passes."""
+    hash, an empty file for each frame found authentic, named by its place in the
+    bundle and where its body lies in it (``NAME``: 16 hex digits, read as one number).
+    A name appears whole or not at all. The table is read once (``spans``); a frame not
+    in it yet is looked for by its name (``has``) before the receiver checks it itself,
+    and added (``put``) if it passes."""
+
+    NAME = "{:04x}{:06x}{:06x}"  # place, offset, length
+    _FIELD = (1 << 24) - 1
 
     def __init__(self, path: str) -> None:
         self.path = path
@@ -291,24 +295,35 @@ class VerdictTable:
             names = os.listdir(path)
         except OSError:
             names = []
-        self.spans: dict[int, tuple[int, int]] = {}
+        self._words: dict[int, int] = {}
         for name in names:
             try:
-                at, off, n = map(int, name.split("_"))
+                word = int(name, 16)
             except ValueError:  # not a verdict
                 continue
-            self.spans[at] = (off, n)
+            self._words[word >> 48] = word
+
+    def __len__(self) -> int:
+        return len(self._words)
+
+    def get(self, at: int) -> tuple[int, int] | None:
+        """Where frame ``at``'s body lies (offset, length), if it was listed when read."""
+        word = self._words.get(at)
+        return None if word is None else ((word >> 24) & self._FIELD, word & self._FIELD)
 
     def has(self, at: int, off: int, n: int) -> bool:
         """Whether frame ``at`` (its body ``n`` bytes at ``off``) was found authentic since
         the table was read."""
-        return os.access(f"{self.path}/{at}_{off}_{n}", os.F_OK)
+        return os.access(f"{self.path}/{self.NAME.format(at, off, n)}", os.F_OK)
 
     def put(self, at: int, off: int, n: int) -> None:
         """Record that frame ``at`` is authentic, its body ``n`` bytes at ``off``."""
+        if at > 0xFFFF or off > self._FIELD or n > self._FIELD:
+            return
         for _ in range(2):
             try:
-                os.close(os.open(f"{self.path}/{at}_{off}_{n}", os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+                os.close(os.open(f"{self.path}/{self.NAME.format(at, off, n)}",
+                                 os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
                 return
             except FileNotFoundError:
                 try:
@@ -441,6 +456,10 @@ class PayloadCheck:
         if msg.vid in self._vouchers or (isinstance(msg, ControlMsg) and not fits(msg)):
             return
         self._vouchers[msg.vid] = msg
+
+    def vouch_all(self, msgs: list[Any]) -> None:
+        for msg in msgs:
+            self.vouch(msg)
 
     def vouched(self, sender: int) -> bool:
         return sender in self._vouchers

@@ -229,7 +229,7 @@ def test_vehicles_on_a_host_share_what_they_found_authentic_and_check_the_rest_a
             DATA_STREAM: {"bad_signature": 1}}
     assert all(isinstance(m, HeardControl) for m in heard)
     tables = list((tmp_path / VERDICTS_DIR / "4").iterdir())
-    assert len(tables) == 1 and sorted(int(f.name.split("_")[0]) for f in tables[0].iterdir()) == [0, 3]
+    assert len(tables) == 1 and sorted(int(f.name, 16) >> 48 for f in tables[0].iterdir()) == [0, 3]
 
 
 def test_what_a_table_lists_counts_only_for_its_own_bundle(authority, creds, tmp_path):

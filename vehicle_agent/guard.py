@@ -68,15 +68,14 @@ class Guard:
         table = None
         if self.verdicts is not None:  # the receivers sweep the old tables in turns
             table = self.verdicts.table(tick, messages, sweep=receivers[tick % len(receivers)] == self.vid)
-        spans = table.spans if table is not None else {}
-        rotated = table is not None and len(spans) < len(places)
+        rotated = table is not None and len(table) < len(places)
         if rotated:  # each vehicle starts where the others do not; a sender's frames stay in order
             places.sort(key=lambda at: (senders[at] < self.vid, at))
         heard: list[tuple[int, ControlMsg | HeardControl]] = []
         seen: set[int] = set()  # not check.vouched: a message whose digests do not fit its map vouches for nothing
         for at in places:
             sender, raw = senders[at], messages[at]
-            span = spans.get(at)
+            span = table.get(at) if table is not None else None
             found = None
             if span is None and table is not None:  # verified since we read the table?
                 found = body_span(raw)
@@ -104,10 +103,11 @@ class Guard:
                 continue
             heard.append((at, msg))
             seen.add(sender)
-            check.vouch(msg)
         if rotated:
             heard.sort(key=lambda h: h[0])
-        return [msg for _, msg in heard], check
+        msgs = [msg for _, msg in heard]
+        check.vouch_all(msgs)
+        return msgs, check
 
     def payloads(self, received: list[Reception], check: PayloadCheck, bundle: CtrlBundle | None) -> list[bytes]:
         """The payloads of ``received`` their senders signed for this interval, in order."""

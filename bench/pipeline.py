@@ -19,6 +19,10 @@ whole-process CPU per tick without: how much more its ``security`` (sealing, che
 the heard control messages and the decoded payloads), ``encoding`` (a signed control
 message vouches for every object's payload, so every one is encoded) and ``link``
 stages (decoding the heard control messages moves from it to ``security``) take.
+The agents of a run on one host share what they verified
+(``protocol.security.Verdicts``): an agent's ``security`` stage holds its share of the
+host's verifications, and the few that get a bundle first in an interval carry more of
+it that interval (each agent's mean over ticks evens that out).
 """
 
 from __future__ import annotations

@@ -719,13 +719,15 @@ def _yaml(obj: dict[str, Any], depth: int = 0) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = run.build_parser(prog="autocast deploy", description=__doc__, lock_down_default=True)
+    ap = run.build_parser(prog="autocast deploy", description=__doc__, lock_down_default=True, sign_default=None)
     ap.add_argument("--hosts", required=True, metavar="FILE", help="the hosts file (deploy/hosts.example.toml)")
     ap.add_argument("--dry-run", action="store_true", help="print where each process runs and every command; "
                     "start nothing")
     ap.add_argument("--compose", metavar="FILE", help="write a docker compose file for this run and hosts "
                     "(one service per process, a router per host); start nothing")
     args = ap.parse_args(argv)
+    if args.sign is None:  # signed by default; a compose file has no credentials to sign with
+        args.sign = not args.compose
     level = args.log_level.upper()
     logging.basicConfig(level=level if level in logging.getLevelNamesMapping() else "INFO",
                         format="autocast deploy: %(message)s")
@@ -744,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
             print("error: --sign: compose files do not carry the vehicles' V2X credentials (docs/multihost.md)",
                   file=sys.stderr)
             return run.EXIT_BAD_INPUT
+        print("note: the vehicles of a compose file do not sign (their V2X credentials are not made into secrets; "
+              "docs/multihost.md)", file=sys.stderr)
         how = shlex.join(["autocast", "deploy", *(sys.argv[2:] if argv is None else argv)])
         write_compose(opts.run, hf, Path(args.compose), how)
         if args.lock_down:

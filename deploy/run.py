@@ -96,7 +96,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def build_parser(prog: str = "autocast run", description: str | None = __doc__,
-                 lock_down_default: bool = False) -> argparse.ArgumentParser:
+                 lock_down_default: bool = False, sign_default: bool | None = SIGN_DEFAULT) -> argparse.ArgumentParser:
     """The run's flags; ``autocast deploy`` adds its own to the same parser (and locks
     Zenoh down by default: its processes span hosts)."""
     from vehicle_agent.__main__ import SCHEMES
@@ -121,9 +121,10 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
     add_model_args(ap)
     sec = ap.add_argument_group("security (docs/security.md)")
-    sec.add_argument("--sign", action=argparse.BooleanOptionalAction, default=SIGN_DEFAULT,
+    sign_default_text = {True: "on", False: "off", None: "on; off for a --compose file"}[sign_default]
+    sec.add_argument("--sign", action=argparse.BooleanOptionalAction, default=sign_default,
                      help="V2X messages signed by each vehicle's certificate from the run's authority and verified "
-                          f"by every receiver (default {'on' if SIGN_DEFAULT else 'off'})")
+                          f"by every receiver (default {sign_default_text})")
     sec.add_argument("--lock-down", action=argparse.BooleanOptionalAction, default=lock_down_default,
                      help="Zenoh: a password per process, and an access-control list that lets each process put "
                           f"only on its own keys (default {'on' if lock_down_default else 'off'})")

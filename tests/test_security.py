@@ -20,8 +20,10 @@ from deploy.run import build_parser, options_from
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import Command, ControlMsg, CtrlBundle, DataTx, ObjectMap, Pose, Reception, Signed
-from protocol.security import Authority, Credentials, PayloadCheck, Rejections, Signer, Verifier, with_digests
+from protocol.security import (VERDICTS_DIR, Authority, Credentials, PayloadCheck, Rejections, Signer, Verdicts,
+                               Verifier, with_digests)
 from protocol.session import DropCounter
+from vehicle_agent.agreement import HeardControl
 from vehicle_agent.guard import CTRL_STREAM, DATA_STREAM, Guard
 from vehicle_agent.payload import ObjectPayload, encode_object, header_of
 
@@ -182,6 +184,80 @@ def test_a_vehicle_that_signs_two_control_messages_in_an_interval_is_heard_once(
     assert [encode(m) for m in heard] == [encode(unfit)]
     assert guard.rejections.summary()["by_stream"] == {CTRL_STREAM: {"replayed": 1}}
     assert guard.payloads([Reception(1, 10, 0.01, p1)], check, bundle) == []  # vouched by nothing it signed first
+
+
+# ---------------------------------------------------------------------------- shared on a host
+
+
+def _forgeries_bundle(authority, creds) -> tuple[CtrlBundle, dict[int, bytes], bytes]:
+    """Tick 4, heard by vehicles 0 and 3. Slot 1: vehicle 1's message, a copy of it
+    signed by vehicle 2, a second message of 1's; slot 2: vehicle 2's message, its body
+    changed under its signature, 2's message of tick 3; slot 3: a plain message. Also
+    the payloads they vouch for, and one with its points moved."""
+    p1, p2 = payload(1, 10, 4), payload(2, 20, 4)
+    m1, m2 = with_digests(control(1, 4, [10]), {10: p1}), with_digests(control(2, 4, [20]), {20: p2})
+    s1, s2 = Signer(creds[1]), Signer(creds[2])
+    genuine = decode(s2.seal(m2), Signed)
+    changed_body = encode(with_digests(control(2, 4, [20, 21]), {20: p2, 21: p2}))
+    frames = [s1.seal(m1), s2.seal(m1), s1.seal(with_digests(control(1, 4, [11]), {11: p1})),
+              s2.seal(m2), encode(replace(genuine, body=changed_body)),
+              s2.seal(with_digests(control(2, 3, [20]), {20: payload(2, 20, 3)})), encode(control(3, 4, []))]
+    bundle = CtrlBundle(4, 0.4, np.array([1, 1, 1, 2, 2, 2, 3], np.int64), np.array([0, 3], np.int64),
+                        np.ones((2, len(frames)), bool), frames)
+    return bundle, {10: p1, 20: p2}, payload(1, 10, 4, shift=1.0)
+
+
+def test_vehicles_on_a_host_share_what_they_found_authentic_and_check_the_rest_alike(authority, creds, tmp_path):
+    """A vehicle checking alone, the first on the host and the second (who finds the
+    first's table) hear the same messages, drop the same forgeries for the same reasons
+    and take the same payloads; the table lists only the two authentic frames, and the
+    second reads their messages from it in part (HeardControl), as without signing."""
+    bundle, payloads, forged = _forgeries_bundle(authority, creds)
+    tmp_path.chmod(0o700)
+    verdicts = Verdicts.open(tmp_path)
+    alone = Guard(creds[0], DropCounter())
+    first = Guard(creds[0], DropCounter(), verdicts)
+    second = Guard(authority.issue(3, 0.0, 100.0), DropCounter(), Verdicts.open(tmp_path))
+    received = [Reception(1, 10, 0.01, payloads[10]), Reception(2, 20, 0.02, payloads[20]),
+                Reception(1, 10, 0.03, forged)]
+    for guard in (alone, first, second):
+        heard, check = guard.heard(decode(encode(bundle)), 4)
+        assert [(m.vid, m.tick) for m in heard] == [(1, 4), (2, 4)]
+        assert guard.payloads(received, check, bundle) == [payloads[10], payloads[20]]
+        assert guard.rejections.summary()["by_stream"] == {
+            CTRL_STREAM: {"bad_signature": 1, "replayed": 2, "unsigned": 1, "wrong_key": 1},
+            DATA_STREAM: {"bad_signature": 1}}
+    assert all(isinstance(m, HeardControl) for m in heard)
+    tables = list((tmp_path / VERDICTS_DIR / "4").iterdir())
+    assert len(tables) == 1 and sorted(int(f.name, 16) >> 48 for f in tables[0].iterdir()) == [0, 3]
+
+
+def test_what_a_table_lists_counts_only_for_its_own_bundle(authority, creds, tmp_path):
+    """A bundle whose first frame is vehicle 1's message with another body under the
+    same signature is another bundle: its table is its own, and the frame is verified,
+    and refused, as if nobody had checked the genuine one."""
+    tmp_path.chmod(0o700)
+    p1 = payload(1, 10, 4)
+    genuine = Signer(creds[1]).seal(with_digests(control(1, 4, [10]), {10: p1}))
+    env = decode(genuine, Signed)
+    other = encode(replace(env, body=encode(with_digests(control(1, 4, [10, 11]), {10: p1, 11: p1}))))
+
+    def bundle(frame: bytes) -> CtrlBundle:
+        return CtrlBundle(4, 0.4, np.array([1], np.int64), np.array([0, 2], np.int64), np.array([[True], [True]]),
+                          [frame])
+
+    assert [m.vid for m in Guard(creds[0], DropCounter(), Verdicts.open(tmp_path)).heard(bundle(genuine), 4)[0]] == [1]
+    guard = Guard(creds[2], DropCounter(), Verdicts.open(tmp_path))
+    assert guard.heard(bundle(other), 4)[0] == []
+    assert guard.rejections.summary()["by_reason"] == {"bad_signature": 1}
+
+
+def test_verdicts_are_shared_only_where_nobody_else_may_write(tmp_path):
+    tmp_path.chmod(0o777)
+    assert Verdicts.open(tmp_path) is None
+    tmp_path.chmod(0o700)
+    assert Verdicts.open(tmp_path) is not None
+    assert (tmp_path / VERDICTS_DIR).stat().st_mode & 0o777 == 0o700
 
 
 # ---------------------------------------------------------------------------- the medium reads, never checks

@@ -28,7 +28,7 @@ from protocol.codec import encode
 from protocol.faults import Injector
 from protocol.messages import AgentReport, Command, MapMsg, Mission, Outcome, Rejected, Scan, Transmission
 from protocol.model import OURS, Model, ModelError, add_model_args, model_from
-from protocol.security import Credentials, plain, with_digests
+from protocol.security import Credentials, Verdicts, plain, with_digests
 from protocol.session import (DropCounter, add_zenoh_args, query_one, reliable_publisher, session_scope, typed_handler,
                               zenoh_args_from)
 from vehicle_agent.agent import Agent, LaneFollower, timed
@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc.args[0]}", file=sys.stderr)
         return 2
     try:
+        args.credentials_dir = Path(args.credentials).parent if args.credentials else None
         args.credentials = Credentials.load(args.credentials) if args.credentials else None
     except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"error: credentials: {exc}", file=sys.stderr)
@@ -151,7 +152,9 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     link = None if args.scheme in ("single", "lane") else \
         V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None),
                 shm_dir=args.shm_dir, missed=missed)
-    guard = Guard(args.credentials, drops) if args.credentials is not None else None
+    guard = None
+    if args.credentials is not None:  # the host's receivers share verified signatures (tmpfs if the run has it)
+        guard = Guard(args.credentials, drops, Verdicts.open(args.shm_dir or args.credentials_dir))
     step = Pipeline(mission, mapmsg, args.scheme, args.channel_profile, args.scheduler, link,
                     report_pub.put if report_pub is not None else None, guard, args.model)
     if step.link is not None:  # one line per agent, like agent_timings at exit: what this vehicle runs with

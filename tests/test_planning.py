@@ -930,3 +930,42 @@ def test_arrival_times_match_the_numpy_version_to_the_bit(s, v0, v_cruise, accel
     with np.errstate(invalid="ignore"):
         want = numpy_arrival_times(s, v0, v_cruise, accel)
     assert arrival_times(s, v0, v_cruise, accel).tobytes() == want.tobytes()
+
+
+def test_a_lane_blocked_ahead_stops_the_vehicle_rather_than_a_path_back_round_the_block():
+    """The lane is walled off 12 m ahead across the corridor but for its left 2 m, and a
+    wall along the left side of the lane, from 25 m behind the vehicle to the wall ahead,
+    keeps it from that gap: the only way through runs 25 m back, round the side wall's end
+    and forward again. A vehicle does not reverse, so there is no path: it stops before
+    the wall ahead (a parked row and a crossing car merged into one standing object led
+    the path 47 m back down the lane while the car drove on toward the crossing)."""
+    from protocol.messages import Pose
+    from vehicle_agent.paths import point_at
+    from vehicle_agent.perception import ABOVE, GROUND, Grid, GridSpec
+    from vehicle_agent.planning import BEHIND_M, Planner
+    from world_server.scenarios import ScenarioParams
+    from world_server.sim import Simulation
+
+    mission = Simulation(ScenarioParams(scenario="red_light", vehicles=5, delta_s=0.0, seed=0)).mission(0)
+    route = np.asarray(mission.route, dtype=float)
+    s0 = 40.0
+    x, y = point_at(route, s0)
+    d = point_at(route, s0 + 1.0) - point_at(route, s0)
+    yaw = float(np.arctan2(d[1], d[0]))
+    forward, left = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+    spec = GridSpec()
+    n = spec.cells
+    i0, j0 = int(np.floor(x / spec.cell_m)) - n // 2, int(np.floor(y / spec.cell_m)) - n // 2
+    grid = Grid(spec, i0, j0, np.full((n, n), GROUND, dtype=np.uint8), np.ones((n, n), dtype=bool))
+    centres = grid.cell_centers(*np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
+    along = (centres - [x, y]) @ forward
+    across = (centres - [x, y]) @ left
+    wall_ahead = (np.abs(along - 12.0) < 0.5) & (across < 4.0)
+    side_wall = (along > -25.0) & (along < 12.5) & (np.abs(across - 3.0) < 0.5)
+    grid.state[wall_ahead | side_wall] = ABOVE
+    pose = Pose(float(x), float(y), yaw)
+    planner = Planner(mission)
+    path = planner.path_planner.plan(grid, grid.state, np.zeros((n, n), dtype=bool), pose, 5.0)
+    assert ((path - [x, y]) @ forward >= -BEHIND_M - spec.cell_m).all()
+    plan = planner.run_step(grid, grid.state, np.zeros((n, n), dtype=bool), [], pose, 5.0, 0.0)
+    assert plan.conflict_s_m is not None and plan.conflict_s_m < 12.0  # it stops short of the wall

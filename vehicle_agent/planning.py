@@ -37,6 +37,7 @@ from vehicle_agent.paths import (_arc_lengths, _clip, _interp, _interp_index, _p
 from vehicle_agent.perception import ABOVE, Grid, LatticeRaster, lattice_centers
 
 STATIC_MPS = 0.5
+BEHIND_M = 1.0  # a path may run this far behind the vehicle's centre (it starts there), no farther: it does not reverse
 MOVER_MIN_DIMS_M = (4.0, 1.8)  # a moving object is at least car-sized: LiDAR sees only part of it
 
 
@@ -423,7 +424,8 @@ class PathPlanner:
         c0, c1 = max(min(cols[0], start[1], goal[1]) - 1, 0), min(max(cols[-1], start[1], goal[1]) + 2, n)
         dist = self._route_raster.window(grid.i0, grid.j0, n)
         extra = (cfg.route_weight * dist[r0:r1, c0:c1]).astype(np.float64)
-        cells = _astar(np.ascontiguousarray(passable[r0:r1, c0:c1]), extra, int(start[0] - r0), int(start[1] - c0),
+        ahead = _ahead_of(pose, grid.i0 + c0, grid.j0 + r0, r1 - r0, c1 - c0, grid.spec.cell_m, BEHIND_M)
+        cells = _astar(np.ascontiguousarray(passable[r0:r1, c0:c1] & ahead), extra, int(start[0] - r0), int(start[1] - c0),
                        heading, int(goal[0] - r0), int(goal[1] - c0), cfg.turn_weight * max(speed_mps, 1.0))
         cells = cells + np.array([r0, c0])
         if len(cells) < 2:
@@ -446,6 +448,15 @@ class PathPlanner:
             return False
         ahead = s + np.arange(0.0, end - s, 0.5)
         return _first_along(passable, 0, path, ahead, cum, grid.i0, grid.j0, grid.spec.cell_m) < 0
+
+
+def _ahead_of(pose: Pose, i0: int, j0: int, rows: int, cols: int, cell_m: float, behind_m: float) -> np.ndarray:
+    """(rows, cols) bool: the cells of the window at lattice (i0, j0) whose centres lie
+    ahead of the vehicle, or at most ``behind_m`` behind it, along its heading."""
+    c, s = np.cos(pose.yaw_rad), np.sin(pose.yaw_rad)
+    x = (i0 + np.arange(cols) + 0.5) * cell_m - pose.x_m
+    y = (j0 + np.arange(rows) + 0.5) * cell_m - pose.y_m
+    return (y[:, None] * s + x[None, :] * c) >= -behind_m
 
 
 def _snap_to_route(path: np.ndarray, route: np.ndarray, cell_m: float) -> np.ndarray:

@@ -272,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="runs at a time")
     ap.add_argument("--timeout-s", type=float, default=45.0, help="each run's wall-clock limit (autocast run)")
     ap.add_argument("--agent-timeout-s", type=float, default=5.0, help="each run's agent timeout (autocast run)")
+    ap.add_argument("--no-warm-up", action="store_true", help="the numba caches are warm already: skip filling them")
     ap.add_argument("--fault", action="append", default=[], metavar="PROCESS:ACTION",
                     help="cycle through these kinds of fault instead of drawing one (e.g. hub:kill)")
     args = ap.parse_args(argv)
@@ -283,11 +284,12 @@ def main(argv: list[str] | None = None) -> int:
     results = args.out / "results.jsonl"
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)  # a killed launcher's orphans come to us, not to init
-    from deploy.run import warm_numba_caches
-    from world_server.scenarios import params_from_dict
+    if not args.no_warm_up:
+        from deploy.run import warm_numba_caches
+        from world_server.scenarios import params_from_dict
 
-    for scenario in SCENARIOS:  # what every run then skips (--no-warm-up), as a sweep does
-        warm_numba_caches(params_from_dict({"scenario": scenario, "vehicles": 5}))
+        for scenario in SCENARIOS:  # what every run then skips (--no-warm-up), as a sweep does
+            warm_numba_caches(params_from_dict({"scenario": scenario, "vehicles": 5}))
     done = {r["index"] for r in read_records(results)}
     t0 = time.monotonic()
     todo = [i for i in range(args.runs) if i not in done]

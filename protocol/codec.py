@@ -95,7 +95,9 @@ def array_spec(hint: Any) -> Array | None:
 # ----------------------------------------------------------------------- invariants
 
 MAP_BOUND_M = 1000.0  # every map lies within this of the origin on both axes (MapMsg checks it)
-MAP_MARGIN_M = 500.0  # beyond the map: a vehicle driving off its end, a LiDAR return, a trajectory's horizon
+# beyond the map: a vehicle driving off its end (a 40 s scenario at 40 m/s: 1.6 km), a LiDAR
+# return (100 m) and a trajectory's horizon (3 s) farther
+MAP_MARGIN_M = 2000.0
 COORD_BOUND_M = MAP_BOUND_M + MAP_MARGIN_M  # what a world-frame coordinate may be: the map's bound plus the margin
 MAX_VID = 1 << 16  # vehicle ids are in [0, MAX_VID) (the agreement's members kernel counts them so)
 MAX_TICK = 1 << 31

@@ -32,6 +32,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import vehicle_agent.__main__ as agent_main
+from test_invariants import _array, _set  # a wire list's arrays and fields, changed
 from protocol import keys
 from protocol.codec import COORD_BOUND_M, MalformedMessage, _packed_to_wire, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, Mission, MapMsg, Reception, Scan, Signed
@@ -167,12 +168,6 @@ def baselines(ticks):
 BAD = [math.nan, math.inf, -math.inf, 1e30, -1e30, 2 * COORD_BOUND_M]
 
 
-def _array(triple: list, change) -> list:
-    a = np.frombuffer(triple[2], triple[0]).reshape(triple[1]).copy()
-    a = change(a)
-    return [a.dtype.str, list(a.shape), a.tobytes()]
-
-
 def _set_entry(value, index: int):
     def change(a):
         if a.size == 0:  # nothing to change: a row that should not be there
@@ -238,14 +233,6 @@ def control_lies(draw):
     return what, path, value
 
 
-def _apply(body: list, path: tuple, value) -> list:
-    node = body
-    for k in path[:-1]:
-        node = node[k]
-    node[path[-1]] = value(node[path[-1]])
-    return body
-
-
 def _without_receptions(data_raw: bytes, sender: int) -> bytes:
     b = decode(data_raw, DataBundle)
     keep = np.array([r.sender != sender for r in b.receptions], bool)
@@ -270,7 +257,7 @@ def payload_lies(draw):
 def test_a_lying_control_message_is_dropped_counted_and_changes_nothing_for_the_honest(ticks, baselines, run, lie):
     t = ticks[run]
     what, path, value = lie
-    frame = t.lie(_apply(t._body(t.liar_raw), path, value))
+    frame = t.lie(_set(t._body(t.liar_raw), path, value))
     seen, sent, cmd, dropped, decision = t.play(_with_frame(t.ctrl, t.liar, frame), t.data)
     want_seen, want_sent, want_cmd, _, _ = baselines[run, "ctrl"]
     plain = decode(frame, Signed).body if t.signed else frame

@@ -45,7 +45,7 @@ import numpy as np
 
 from protocol import messages  # noqa: F401  (registers every message type)
 from protocol.codec import WIRE_DTYPES, MalformedMessage, _packed_to_wire, array_spec, decode, encode, message_types
-from protocol.messages import Pose
+from protocol.messages import PUBLIC_KEY_BYTES, SIGNATURE_BYTES, Pose
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object
 
 MESSAGE_TYPES: tuple[type, ...] = message_types()
@@ -98,10 +98,10 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
         fields = {f.name: wire_value(hints[f.name], rnd, depth + 1) for f in dataclasses.fields(hint)}
         _make_consistent(fields, rnd)
         return list(fields.values())
-    if hint is float:
-        return rnd.choice([0.0, 1.5, -3.25, rnd.uniform(-1e3, 1e3)])
+    if hint is float:  # within every float field's declared range (protocol.codec invariants)
+        return rnd.choice([0.5, 1.5, 2.75, rnd.uniform(1e-3, 3.0)])
     if hint is int:
-        return rnd.randint(-2, 100)
+        return rnd.randint(0, 100)
     if hint is str:
         return rnd.choice(["", "ego", "S.in.0", "green"])
     if hint is bool:
@@ -114,12 +114,22 @@ def wire_value(hint: Any, rnd: random.Random, depth: int = 0) -> Any:
 
 
 def _array(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
-    """A random array of ``dtype_str`` and ``shape`` on the wire."""
+    """A random array of ``dtype_str`` and ``shape`` on the wire, of values every field
+    of its kind takes (``protocol.codec`` invariants): floats in [0, 1], integers a
+    strictly ascending run of small ids (one-dimensional) or small counts, other bytes
+    any."""
     dtype = np.dtype(dtype_str)
-    raw = bytes(rnd.getrandbits(8) for _ in range(math.prod(shape) * dtype.itemsize))
-    if dtype == np.bool_:
-        raw = bytes(b & 1 for b in raw)
-    return [dtype.str, shape, raw]
+    count = math.prod(shape)
+    if dtype.kind == "f":
+        values = np.array([rnd.random() for _ in range(count)], dtype)
+    elif dtype.kind == "i" and len(shape) == 1:
+        values = np.array(sorted(rnd.sample(range(64), count)), dtype)
+    elif dtype.kind == "i":
+        values = np.array([rnd.randint(0, 100) for _ in range(count)], dtype)
+    else:
+        raw = bytes(rnd.getrandbits(8) for _ in range(count * dtype.itemsize))
+        return [dtype.str, shape, bytes(b & 1 for b in raw) if dtype == np.bool_ else raw]
+    return [dtype.str, shape, values.tobytes()]
 
 
 def _packed(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
@@ -128,7 +138,8 @@ def _packed(dtype_str: str, shape: list[int], rnd: random.Random) -> list:
     dtype = np.dtype(dtype_str)
     uint = np.dtype(f"<u{dtype.itemsize}")
     one = np.ones(1, dtype).view(uint)[0]
-    bits = [rnd.choice([0, int(one), rnd.getrandbits(8 * dtype.itemsize)]) for _ in range(math.prod(shape))]
+    share = np.array([rnd.random()], dtype).view(uint)[0]  # a share (visibility, relevance) is in [0, 1]
+    bits = [rnd.choice([0, int(one), int(share)]) for _ in range(math.prod(shape))]
     return _packed_to_wire(np.array(bits, uint).view(dtype).reshape(shape))
 
 
@@ -151,7 +162,10 @@ def message_body(cls: type, rnd: random.Random) -> list:
 
 def _make_consistent(fields: dict[str, Any], rnd: random.Random) -> None:
     """Bundles check that their receiver masks fit, an object map that its rows and
-    tables do (``__post_init__``): make them fit."""
+    tables do (``__post_init__``), and every message its declared invariants (lengths
+    that agree, ids once, times that do not go back, keys and signatures of their size):
+    make them hold."""
+    _keep_invariants(fields, rnd)
     if "object_id" in fields and "visibility" in fields:  # ObjectMap: n objects by m receivers
         n, m = rnd.randint(0, 4), rnd.randint(0, 4)
         shapes = {"object_id": [n], "size_bytes": [n], "centroid_xy": [n, 2], "receivers": [m],
@@ -170,6 +184,43 @@ def _make_consistent(fields: dict[str, Any], rnd: random.Random) -> None:
             mask, columns = "decoded", len(fields["receptions"])
         bits = np.array([rnd.random() < 0.5 for _ in range(len(receivers) * columns)], "|b1")
         fields[mask] = ["|b1", [len(receivers), columns], bits.tobytes()]
+
+
+def _rows(n: int, triple: list, rnd: random.Random) -> list:
+    """``triple`` (an array on the wire) with ``n`` rows."""
+    return _array(triple[0], [n, *triple[1][1:]], rnd)
+
+
+def _keep_invariants(fields: dict[str, Any], rnd: random.Random) -> None:
+    for name, size in (("public_key", PUBLIC_KEY_BYTES), ("signature", SIGNATURE_BYTES)):
+        if type(fields.get(name)) is bytes:
+            fields[name] = bytes(rnd.getrandbits(8) for _ in range(size))
+    for name in ("beams", "azimuth_steps"):  # a LiDAR has at least one of each
+        if name in fields:
+            fields[name] = max(1, fields[name])
+    if "valid_until_s" in fields:
+        fields["valid_from_s"], fields["valid_until_s"] = sorted((fields["valid_from_s"], fields["valid_until_s"]))
+    if isinstance(fields.get("live"), list):
+        fields["live"] = sorted(set(fields["live"]))
+    if isinstance(fields.get("lights"), list):
+        fields["lights"] = [light for i, light in enumerate(fields["lights"])
+                            if all(light[0] != other[0] for other in fields["lights"][:i])]
+    if "trajectory" in fields:  # its times do not go back
+        traj = np.frombuffer(fields["trajectory"][2], "<f4").reshape(fields["trajectory"][1]).copy()
+        traj[:, 2] = np.sort(traj[:, 2])
+        fields["trajectory"] = ["<f4", list(traj.shape), traj.tobytes()]
+    if "objects" in fields:  # per-object arrays: a row per object, or none
+        n = fields["objects"][0][1][0]
+        for name in ("unscheduled", "digests"):
+            fields[name] = _rows(rnd.choice([0, n]), fields[name], rnd)
+    if "vids" in fields:  # WorldTruth: a row per vehicle
+        n = fields["vids"][1][0]
+        for name in ("pose", "speed_mps", "size_m"):
+            fields[name] = _rows(n, fields[name], rnd)
+    if "site_vids" in fields:
+        fields["site_xy"] = _rows(fields["site_vids"][1][0], fields["site_xy"], rnd)
+    if "received_points" in fields:
+        fields["received_points"] = rnd.randint(0, fields["fused_xy"][1][0])
 
 
 def valid_payload(name: str, rnd: random.Random) -> bytes:

@@ -12,10 +12,11 @@ lets every process subscribe, query and receive on the run's keys but put, reply
 hold liveliness tokens only on its own: an agent on its ``cmd``, ``report``,
 ``rejected`` and ``net/.../tx|up/<vid>`` keys and its token, the world on the world's
 keys and the scans, the proxy on ``net/.../rx``, ``net/stats``, the EMP downlinks and
-its token, the recorder on nothing, the launcher only its liveliness token (a compose
-run's world waits for it). A session without a password from the dictionary cannot
-connect at all. Each process's Zenoh config is
-``<run>/credentials/<name>.zenoh.json5``; each router's (or the single-host hub's)
+its token, a participant the world is told to wait for (``--wait-for NAME``) on its
+token ``alive/p/NAME`` alone, the launcher only its liveliness token (a compose run's
+world waits for it), the recorder on nothing. A session without a password from the
+dictionary cannot connect at all. Each process's Zenoh config is
+``<run>/credentials/<name>.zenoh.json5`` (a participant's: ``participant-NAME``); each router's (or the single-host hub's)
 ``<run>/credentials/router-<name>.zenoh.json5`` with the dictionary beside it.
 
 Routers link to each other over mutual TLS (``transport.link.tls``, a certificate per
@@ -47,6 +48,7 @@ from protocol.security import Authority
 VALIDITY_MARGIN_S = 60.0  # certificates outlive the run's sim-time limit by this much
 LAUNCHER = "launcher"
 HUB = "hub"  # the single-host hub's router (the launcher's own session)
+PARTICIPANT = "participant-"  # + NAME: the Zenoh user of a participant the world waits for (--wait-for NAME)
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
                 "declare_liveliness_subscriber", "liveliness_query")
 ASKING = ("declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query")
@@ -128,7 +130,20 @@ def own_keys(cfg: table.RunConfig, name: str) -> tuple[list[str], list[str]]:
                 keys.net_data_tx(run, vid), keys.net_emp_up(run, vid)], [keys.alive(run, vid)]
     if name == LAUNCHER:  # its token tells the world that the recorder is up (deploy.compose_launcher)
         return [], [keys.participant_alive(run, LAUNCHER)]
+    if name.startswith(PARTICIPANT):  # its token, so the world may start; nothing else
+        return [], [keys.participant_alive(run, name[len(PARTICIPANT):])]
     return [], []  # the recorder: it only listens
+
+
+def participant_user(name: str) -> str:
+    """The Zenoh user (and credentials file) of participant ``name`` (``--wait-for NAME``)."""
+    return PARTICIPANT + name
+
+
+def users_of(cfg: table.RunConfig) -> list[str]:
+    """Every process of the run that gets a Zenoh password: the table's and the
+    participants the world waits for."""
+    return [spec.name for spec in table.processes(cfg)] + [participant_user(n) for n in cfg.wait_for]
 
 
 def access_control(cfg: table.RunConfig, processes: list[str], routers: list[str]) -> dict:
@@ -165,7 +180,7 @@ def lock_down(cfg: table.RunConfig, routers: dict[str, str]) -> dict[str, Path]:
     """Write the Zenoh credentials of every process of ``cfg`` (and of the launcher) and
     the config of each router (name -> the address the others reach it at: its TLS
     certificate's subject alternative name); returns every config file by name."""
-    processes = [spec.name for spec in table.processes(cfg)] + [LAUNCHER]
+    processes = users_of(cfg) + [LAUNCHER]
     users = ZenohUsers.new(processes + list(routers))
     d = _private_dir(table.credentials_dir(cfg))
     dictionary = _write_private(d / "zenoh-users.txt", users.dictionary())
@@ -226,7 +241,7 @@ def _certificate(subject: x509.Name, issuer: x509.Name, public_key, ca_key, vali
 def hub_config(cfg: table.RunConfig, extra: dict) -> Path:
     """The single-host hub's config (``autocast run --lock-down``): the launcher's router
     session requires every process's password and applies the run's ACL."""
-    processes = [spec.name for spec in table.processes(cfg)]
+    processes = users_of(cfg)
     users = ZenohUsers.new(processes + [HUB])
     d = _private_dir(table.credentials_dir(cfg))
     dictionary = _write_private(d / "zenoh-users.txt", users.dictionary())

@@ -478,6 +478,7 @@ class _Zygote:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         for pid in list(self.children):
             _killpg(pid, signal.SIGINT)
+            _killpg(pid, signal.SIGCONT)  # a stopped child acts on it only once continued
         deadline = time.monotonic() + self.stop_grace_s
         while self.children and time.monotonic() < deadline:
             self._reap()

@@ -119,10 +119,12 @@ class ProcessManager:
         return left
 
     def stop(self, names: Iterable[str], grace_s: float = 3.0) -> None:
-        """SIGINT ``names`` together, wait up to ``grace_s``, SIGKILL what is left; reap all."""
+        """SIGINT ``names`` together (SIGCONT too: a stopped one finishes as the others do),
+        wait up to ``grace_s``, SIGKILL what is left; reap all."""
         running = [self.procs[n][1] for n in names if n in self.procs and self.procs[n][1].poll() is None]
         for p in running:
             _signal(p, signal.SIGINT)
+            _signal(p, signal.SIGCONT)  # a stopped process (SIGSTOP) acts on it only once continued
         deadline = time.monotonic() + grace_s
         for p in running:
             try:

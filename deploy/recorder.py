@@ -37,6 +37,7 @@ import io
 import json
 import logging
 import math
+import os
 import queue
 import signal
 import struct
@@ -395,16 +396,64 @@ def _no_nan(v: typing.Any) -> typing.Any:
     return v
 
 
+class WholeRecords:
+    """The stream an MCAP writer writes a file through, on disk only in whole records:
+    the writer's many small writes gather in memory and reach the file in one
+    ``write(2)`` when ``McapLog`` commits, after each of its calls. A recorder killed at
+    any moment (SIGKILL: no finalizing) so leaves a file whose every record is whole and
+    which reads to its end, up to the last chunk written; only its summary is missing
+    (``read_messages`` reads such a file from the start). Through Python's buffered file
+    a killed recorder left an 8 KB block boundary in the middle of a record."""
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._pending = bytearray()
+        self._written = 0
+
+    def write(self, data: bytes) -> int:
+        self._pending += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self._written + len(self._pending)
+
+    def commit(self) -> None:
+        view = memoryview(self._pending)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+            self._written += n
+        del view
+        self._pending.clear()
+
+    flush = commit
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            self.commit()
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> WholeRecords:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 class McapLog:
     """An MCAP writer with a channel per (key, message type) and a schema per type;
-    with ``json_mirror``, also a JSON channel per key (``json/<key>``)."""
+    with ``json_mirror``, also a JSON channel per key (``json/<key>``). Given a
+    ``WholeRecords`` stream, it commits after each call: the file is always whole records."""
 
-    def __init__(self, stream: typing.BinaryIO, metadata: dict[str, str], compression: str = "zstd",
+    def __init__(self, stream: typing.BinaryIO | WholeRecords, metadata: dict[str, str], compression: str = "zstd",
                  json_mirror: bool = False) -> None:
         kind = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         self.writer = Writer(stream, compression=kind)
+        self._commit = stream.commit if isinstance(stream, WholeRecords) else (lambda: None)
         self.writer.start(profile="", library="autocast-recorder")
         self.writer.add_metadata(METADATA_NAME, metadata)
+        self._commit()
         self.json_mirror = json_mirror
         self.schemas: dict[type, int] = {}
         self.json_schemas: dict[type, int] = {}
@@ -429,6 +478,7 @@ class McapLog:
         self.stats.bytes += len(payload)
         if self.json_mirror and env is not None:
             self._mirror(key, env.cls, payload, log_time_ns, publish_ns, seq)
+        self._commit()
 
     def _mirror(self, key: str, cls: type, payload: bytes, log_time_ns: int, publish_ns: int, seq: int) -> None:
         try:
@@ -470,6 +520,7 @@ class McapLog:
     def finish(self) -> None:
         self.writer.add_metadata(STATS_NAME, self.stats.as_metadata())
         self.writer.finish()
+        self._commit()
 
 
 class Recorder:
@@ -643,7 +694,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def record(cfg: RecorderConfig, zargs: ZenohArgs, stop: threading.Event) -> int:
     """Record one run into ``cfg.path`` until ``stop``; the file is finalized whatever ends the run."""
-    with session_scope(zargs) as session, open(cfg.path, "wb") as stream:
+    with session_scope(zargs) as session, WholeRecords(cfg.path) as stream:
         recorder = Recorder(cfg, session, stop)
         out = McapLog(stream, cfg.metadata, cfg.compression, json_mirror=cfg.json_mirror)
         try:

@@ -398,6 +398,7 @@ class Launcher:
         self.specs = specs
         self.cpu = RunCpu(self.procs) if procs is None else None  # local processes only
         self._subs: list = []  # the launcher's own (_listen)
+        self.faults = faults.Injector("hub")  # AUTOCAST_FAULTS: the launcher hosts the run's hub
 
     def _on_tick(self, sample: zenoh.Sample) -> None:
         """The world's first tick: the processes' CPU so far (``RunCpu``), once."""
@@ -408,6 +409,14 @@ class Launcher:
         except MalformedMessage:  # anybody can put garbage on the key: only a real tick counts
             return
         self.cpu.first_tick()
+
+    def _on_tick_fault(self, sample: zenoh.Sample) -> None:
+        """``hub:<action>@N`` (``protocol.faults``): the launcher, and with it the hub, at tick N."""
+        try:
+            tick = decode(sample.payload.to_bytes(), Tick)
+        except MalformedMessage:
+            return
+        self.faults.at(tick.tick)
 
     def _on_outcome(self, key: str, msg: Outcome) -> None:
         if self.outcome is None:
@@ -441,6 +450,8 @@ class Launcher:
                                                           typed_handler(Outcome, self._on_outcome, self._drops)))
         if self.cpu is not None:
             self._subs.append(self.session.declare_subscriber(keys.world_tick(run), self._on_tick))
+        if self.faults.faults:
+            self._subs.append(self.session.declare_subscriber(keys.world_tick(run), self._on_tick_fault))
 
     def _start(self, specs: list) -> str | None:
         recorder, rest = specs[0], specs[1:]

@@ -42,12 +42,14 @@ from typing import Any, NoReturn, TextIO
 
 from deploy import factory as process_factory
 from deploy.procs import has_argument
+from protocol import shm
 
 log = logging.getLogger("deploy.sweep")
 
 EXIT_OK, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 RESULTS, PLAN, LOCK = "results.jsonl", "plan.json", "sweep.lock"
 LAUNCHER_GRACE_S = 30.0  # a launcher stops its processes within ~15 s of SIGINT (docs/running.md)
+ORPHAN_GRACE_S = 10.0  # a killed launcher's factory stops its processes within ~3.5 s (deploy/factory.py)
 LAUNCHER_MODULES = ("deploy.cli", "deploy.run", *process_factory.RUN_MODULES)  # what a launcher imports
 LAUNCHER_SLACK_S = 120.0  # beyond the run's own --timeout-s: start-up and shutdown
 STDERR_TAIL_CHARS = 2000
@@ -702,6 +704,8 @@ class Sweep:
         stdout = job.out_path.read_text(errors="replace")
         stderr = job.err_path.read_text(errors="replace")
         rc = job.proc.returncode
+        if rc is not None and rc < 0 and not timed_out:  # the launcher itself was killed
+            clean_after_launcher(self.runs_dir / job.run_id, job.run_id, job.proc.pid)
         if timed_out:
             stderr += (f"\nautocast sweep: the launcher did not exit within {self.spec.timeout_s + LAUNCHER_SLACK_S:.0f} s;"
                        " killed it and its processes")
@@ -730,18 +734,7 @@ class Sweep:
         self.running.clear()
 
     def _terminate(self, job: Job, grace_s: float = LAUNCHER_GRACE_S) -> None:
-        """Stop one launcher; if it has to be killed, kill the processes it started too
-        (by the pids it wrote, each checked to still be this run's)."""
-        if job.proc.poll() is None and grace_s > 0:
-            _signal_group(job.proc.pid, signal.SIGINT)
-            try:
-                job.proc.wait(timeout=grace_s)
-            except subprocess.TimeoutExpired:
-                pass
-        if job.proc.poll() is None:
-            _signal_group(job.proc.pid, signal.SIGKILL)
-            job.proc.wait()
-            kill_run_processes(self.runs_dir / job.run_id, job.run_id)
+        stop_launcher(job.proc, self.runs_dir / job.run_id, job.run_id, grace_s)
 
 
 def launcher_args(spec: SweepSpec, key: RunKey, run_id: str, runs_dir: Path, warm: bool) -> list[str]:
@@ -773,16 +766,55 @@ def _signal_group(pid: int, sig: int) -> None:
         pass
 
 
-def kill_run_processes(run_dir: Path, run_id: str) -> None:
-    """SIGKILL what a killed launcher left: the pids in its ``pids.json`` that still run
-    with this run id on their command line (a reused pid is someone else's)."""
+def stop_launcher(proc: subprocess.Popen | process_factory.ForkedProcess, run_dir: Path, run_id: str,
+                  grace_s: float = LAUNCHER_GRACE_S) -> int:
+    """Stop one launcher (SIGINT to its group, continued if it was stopped; SIGKILL after
+    ``grace_s``); if it has to be killed, clean up after it (``clean_after_launcher``).
+    Returns how many of its processes had to be killed."""
+    if proc.poll() is None and grace_s > 0:
+        _signal_group(proc.pid, signal.SIGINT)
+        _signal_group(proc.pid, signal.SIGCONT)
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+    if proc.poll() is None:
+        _signal_group(proc.pid, signal.SIGKILL)
+        proc.wait()
+        return clean_after_launcher(run_dir, run_id, proc.pid, ORPHAN_GRACE_S if grace_s > 0 else 0.0)
+    return 0
+
+
+def clean_after_launcher(run_dir: Path, run_id: str, launcher_pid: int, grace_s: float = ORPHAN_GRACE_S) -> int:
+    """What a launcher that died of a signal (killed, or by us after its time) could not
+    stop or remove: the processes it started, which its process factory stops when it
+    goes (SIGINT, 3 s, SIGKILL: the recorder finalizes its log) and which get
+    ``grace_s`` for that before they are killed here, and its shared-memory directory.
+    Returns how many processes had to be killed."""
+    deadline = time.monotonic() + grace_s
+    while run_processes(run_dir, run_id) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    killed = kill_run_processes(run_dir, run_id)
+    shm.remove_orphans(launcher=(launcher_pid, run_id))
+    return killed
+
+
+def run_processes(run_dir: Path, run_id: str) -> list[int]:
+    """The pids in a run's ``pids.json`` that still run with its id on their command line
+    (a reused pid is someone else's)."""
     try:
         pids = json.loads((run_dir / "pids.json").read_text()).values()
     except (OSError, ValueError):
-        return
-    for pid in pids:
-        if has_argument(int(pid), run_id):
-            _signal_group(int(pid), signal.SIGKILL)
+        return []
+    return [int(pid) for pid in pids if has_argument(int(pid), run_id)]
+
+
+def kill_run_processes(run_dir: Path, run_id: str) -> int:
+    """SIGKILL what a killed launcher left (``run_processes``); returns how many."""
+    left = run_processes(run_dir, run_id)
+    for pid in left:
+        _signal_group(pid, signal.SIGKILL)
+    return len(left)
 
 
 def warm_up(key: RunKey) -> None:

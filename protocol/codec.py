@@ -92,6 +92,169 @@ def array_spec(hint: Any) -> Array | None:
     return None
 
 
+# ----------------------------------------------------------------------- invariants
+
+MAP_BOUND_M = 1000.0  # every map lies within this of the origin on both axes (MapMsg checks it)
+# beyond the map: a vehicle driving off its end (a 40 s scenario at 40 m/s: 1.6 km), a LiDAR
+# return (100 m) and a trajectory's horizon (3 s) farther
+MAP_MARGIN_M = 2000.0
+COORD_BOUND_M = MAP_BOUND_M + MAP_MARGIN_M  # what a world-frame coordinate may be: the map's bound plus the margin
+MAX_VID = 1 << 16  # vehicle ids are in [0, MAX_VID) (the agreement's members kernel counts them so)
+MAX_TICK = 1 << 31
+MAX_T_SIM_S = 1e6
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Invariant:
+    """A property the values of a message's (or record's) ``fields`` must have, declared
+    with the message in its ``INVARIANTS`` and checked by the codec as it decodes them
+    (``decode``, and ``decode_fields`` for the invariants whose fields it reads): ``test``
+    takes the fields' decoded values and returns None, or what is wrong; the decoder then
+    raises ``MalformedMessage`` naming the first field. Build them with the functions
+    below (``finite``, ``within``, ``in_map``, ``same_rows``, ...)."""
+
+    fields: tuple[str, ...]
+    test: typing.Callable[..., str | None]
+
+
+def _floats(value: Any) -> np.ndarray:
+    return value if isinstance(value, np.ndarray) else np.asarray(value, dtype=np.float64)
+
+
+def finite(*fields: str) -> tuple[Invariant, ...]:
+    """Each field (a number or an array) is finite: no NaN, no infinity."""
+    def test(v: Any) -> str | None:
+        if isinstance(v, float):
+            return None if math.isfinite(v) else f"{v!r} is not finite"
+        return None if np.isfinite(v).all() else "holds a value that is not finite"
+    return tuple(Invariant((f,), test) for f in fields)
+
+
+def within(field: str, lo: float, hi: float, columns: slice | None = None) -> Invariant:
+    """Every value of ``field`` (a number, an array, or the ``columns`` of a table) lies in
+    [lo, hi]; NaN never does (an array's min and max are NaN if any entry is)."""
+    def test(v: Any) -> str | None:
+        if type(v) is float or type(v) is int:
+            return None if lo <= v <= hi else f"{_brief(v)} is not in [{lo:g}, {hi:g}]"
+        a = v if columns is None else v[:, columns]
+        if not a.size or (lo <= a.min() and a.max() <= hi):
+            return None
+        return f"holds a value not in [{lo:g}, {hi:g}]"
+    return Invariant((field,), test)
+
+
+def in_map(field: str, columns: slice | None = slice(0, 2)) -> Invariant:
+    """World-frame coordinates: finite and within ``COORD_BOUND_M`` of the origin (the
+    ``columns`` of a table, x and y by default; a number: itself)."""
+    return within(field, -COORD_BOUND_M, COORD_BOUND_M, columns)
+
+
+def vid(*fields: str) -> tuple[Invariant, ...]:
+    """Each field is a vehicle id, or an array of them: in [0, MAX_VID)."""
+    return tuple(within(f, 0, MAX_VID - 1) for f in fields)
+
+
+def ascending(field: str, lo: int = 0, hi: int = MAX_VID - 1) -> Invariant:
+    """Ids strictly ascending (in order, none twice), in [lo, hi] (vehicle ids by default)."""
+    def test(v: np.ndarray) -> str | None:
+        if len(v) and not (lo <= v[0] and v[-1] <= hi):
+            return f"holds an id not in [{lo}, {hi}]"
+        return None if len(v) < 2 or (v[1:] > v[:-1]).all() else "is not strictly ascending"
+    return Invariant((field,), test)
+
+
+def unique(field: str) -> Invariant:
+    """No value twice."""
+    return Invariant((field,), lambda v: None if len(set(v.tolist())) == len(v) else "holds a value twice")
+
+
+def waypoints(field: str) -> Invariant:
+    """A trajectory ``[x_m, y_m, t_sim_s]`` per row: on the map (``in_map``), its times in
+    [0, MAX_T_SIM_S] and never going back. One check, as a vehicle reads one trajectory
+    of every control message it hears."""
+    bound = COORD_BOUND_M
+
+    def test(a: np.ndarray) -> str | None:  # a loop over a few rows: a quarter of numpy's calls' time
+        last = 0.0
+        for i, (x, y, t) in enumerate(a.tolist()):  # NaN fails every comparison
+            if not (-bound <= x <= bound and -bound <= y <= bound):
+                return f"waypoint {i} is not within {bound:g} m of the origin"
+            if not last <= t <= MAX_T_SIM_S:
+                return f"waypoint {i}'s time goes back (or is not in [0, {MAX_T_SIM_S:g}])"
+            last = t
+        return None
+    return Invariant((field,), test)
+
+
+def nondecreasing(field: str, column: int | None = None) -> Invariant:
+    """Never goes back (a column of a table: times along a trajectory)."""
+    def test(v: np.ndarray) -> str | None:
+        a = v if column is None else v[:, column]
+        return None if len(a) < 2 or bool((a[1:] >= a[:-1]).all()) else "goes back"
+    return Invariant((field,), test)
+
+
+def at_most(field: str, n: int) -> Invariant:
+    """At most ``n`` items (rows)."""
+    return Invariant((field,), lambda v: None if len(v) <= n else f"{len(v)} items, at most {n}")
+
+
+def same_rows(field: str, like: str, of: typing.Callable[[Any], Any] = lambda v: v, or_none: bool = False) -> Invariant:
+    """``field`` has a row per row of ``like`` (``of(like)``: a record's array); with
+    ``or_none``, or none at all."""
+    def test(v: Any, w: Any) -> str | None:
+        n = len(of(w))
+        return None if len(v) == n or (or_none and len(v) == 0) else \
+            f"{len(v)} rows for {n}{' (or none)' if or_none else ''}"
+    return Invariant((field, like), test)
+
+
+def byte_length(field: str, n: int) -> Invariant:
+    return Invariant((field,), lambda v: None if len(v) == n else f"{len(v)} bytes, not {n}")
+
+
+def each(field: str, inner: Invariant) -> Invariant:
+    """``inner`` (of one field) holds for every item of the list ``field``."""
+    def test(items: list) -> str | None:
+        for i, v in enumerate(items):
+            if (problem := inner.test(v)) is not None:
+                return f"[{i}] {problem}"
+        return None
+    return Invariant((field,), test)
+
+
+# every message's envelope fields
+STAMPED = (within("tick", 0, MAX_TICK), within("t_sim_s", 0.0, MAX_T_SIM_S))
+
+
+def invariants(cls: type) -> tuple[Invariant, ...]:
+    """What a message or record class declares (``INVARIANTS``), checked for its fields."""
+    declared = tuple(getattr(cls, "INVARIANTS", ()))
+    names = {f.name for f in dataclasses.fields(cls)}
+    for inv in declared:
+        if not set(inv.fields) <= names:
+            raise TypeError(f"{cls.__name__}: an invariant of {inv.fields} names no field of it")
+    return declared
+
+
+def _invariant_lines(env: dict[str, Any], cls: type, names: Sequence[str], indent: str) -> list[str]:
+    """Generated lines that run ``cls``'s invariants over the values read so far
+    (``a<i>`` is ``names[i]``), those whose fields are all among ``names``: each failing
+    one sets ``at`` to its first field's place and raises ``_FieldError``."""
+    where = {name: i for i, name in enumerate(names)}
+    lines = []
+    for j, inv in enumerate(invariants(cls)):
+        if not all(f in where for f in inv.fields):
+            continue
+        env[f"inv{j}"] = inv.test
+        env["_bad"] = _bad
+        lines += [f"{indent}problem = inv{j}({', '.join(f'a{where[f]}' for f in inv.fields)})",
+                  f"{indent}if problem is not None:",
+                  f"{indent}    at = {where[inv.fields[0]]}",
+                  f"{indent}    _bad(problem)"]
+    return lines
+
+
 def message(type_id: int, version: int = 1):
     """Class decorator: a frozen, slotted dataclass registered as wire type ``type_id``."""
 
@@ -625,6 +788,7 @@ def _record_converter(cls: type) -> Converter:
              "    at = 0",
              "    try:"]
     lines += _field_lines(env, [(at, hint) for at, (_, hint) in enumerate(hints)])
+    lines += _invariant_lines(env, cls, names, "        ")
     lines += ["    except _FieldError as err:",
               "        err.path.insert(0, '.' + names[at])",
               "        raise"]
@@ -707,6 +871,7 @@ def _fields_reader(key: tuple[type, tuple[str, ...]]) -> Converter:
              "    at = 0",
              "    try:"]
     lines += _field_lines(env, [(index[name], hints[name]) for name in names])
+    lines += _invariant_lines(env, cls, names, "        ")
     lines += ["    except _FieldError as err:",
               "        raise MalformedMessage(f\"{cls_name}.{names[at]}{''.join(err.path)}: {err.text}\") from None",
               "    except (TypeError, ValueError) as exc:",
@@ -747,6 +912,7 @@ def fields_decoder(expected: type, names: Sequence[str], into: type) -> typing.C
              "    at = 0",
              "    try:"]
     lines += _field_lines(env, [(index[name] + 2, hints[name]) for name in names])
+    lines += _invariant_lines(env, expected, names, "        ")
     lines += ["    except _FieldError as err:",
               "        raise MalformedMessage(f\"{cls_name}.{names[at]}{''.join(err.path)}: {err.text}\") from None",
               "    except (TypeError, ValueError) as exc:",

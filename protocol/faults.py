@@ -8,27 +8,37 @@ failure at the same point of the run on a fast machine and on a loaded one.
 
 Actions:
 - ``kill``: SIGKILL itself (no clean-up, no outcome, no goodbye: a crashed process);
-- ``hang``: block that thread forever (a process that is alive and silent).
+- ``hang``: block that thread forever (a process that is alive and silent);
+- ``stop``: SIGSTOP itself (the whole process frozen, every thread: a process the OS
+  stopped, or a machine that froze); whoever stops it later continues it first.
 
 Processes name themselves as the launcher's table does: ``world``, ``proxy``,
 ``agent<vid>``, ``recorder`` (at the first message it writes of that tick or later: the
 world's outcome carries the tick after the last played, so ``recorder:kill@N`` of a run
-of N ticks kills it as the outcome arrives). A bad specification is an error at
-start-up, naming the entry.
+of N ticks kills it as the outcome arrives), and ``hub``: the launcher, whose Zenoh
+router every process of a one-host run talks through (at the world's tick). A bad
+specification is an error at start-up, naming the entry.
+
+With ``AUTOCAST_FAULTS_LOG=FILE`` each fault appends one JSON line to FILE just before
+it acts (process, action, tick, ``t_unix``: the wall time), so whoever caused it can
+measure what followed (``bench/soak.py``: the time from the fault to the run's verdict).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import threading
+import time
 from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
 ENV = "AUTOCAST_FAULTS"
-ACTIONS = ("kill", "hang")
+LOG_ENV = "AUTOCAST_FAULTS_LOG"
+ACTIONS = ("kill", "hang", "stop")
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +75,20 @@ class Injector:
                 log.warning("fault injection: %s at tick %d", f.action, tick)
                 for handler in logging.getLogger().handlers:  # the line reaches the log before we go
                     handler.flush()
+                _note(f, tick)
                 if f.action == "kill":
                     os.kill(os.getpid(), signal.SIGKILL)
+                if f.action == "stop":
+                    self.faults = []  # continued (to be stopped for good), it goes on as if nothing happened
+                    os.kill(os.getpid(), signal.SIGSTOP)
+                    return
                 threading.Event().wait()  # hang
+
+
+def _note(fault: Fault, tick: int) -> None:
+    """One JSON line in ``AUTOCAST_FAULTS_LOG``, if set: what acts, when (wall time)."""
+    path = os.environ.get(LOG_ENV)
+    if path:
+        with open(path, "a") as f:
+            f.write(json.dumps({"process": fault.process, "action": fault.action, "tick": tick,
+                                "t_unix": time.time()}) + "\n")

@@ -5,7 +5,11 @@ Each top-level message carries ``tick`` (decision interval number) and ``t_sim_s
 in the world frame (x east, y north, yaw counter-clockwise from +x); scans are in the
 sensor frame (origin at the LiDAR, x forward, y left, z up). An array field declares
 its dtype and shape (``Array``: ``"<f4", (None, 3)`` is float32 of three columns, any
-number of rows); a message whose arrays are otherwise is refused whole.
+number of rows); a message whose arrays are otherwise is refused whole. Each message
+and record declares in ``INVARIANTS`` what its values must be besides (``protocol.codec``:
+finite, within the map's bound and a margin, ids unique, lengths that agree, counts and
+sizes within limits, times that do not go back); the decoder refuses a message that
+breaks one, naming the field.
 """
 
 from __future__ import annotations
@@ -15,7 +19,18 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from protocol.codec import Array, message, record
+from protocol.codec import (MAP_BOUND_M, MAX_TICK, MAX_VID, STAMPED, Array, Invariant, ascending, at_most, byte_length, each,
+                            finite, in_map, message, nondecreasing, record, same_rows, unique, vid, waypoints, within)
+
+MAX_OBJECTS = 4096  # objects in one vehicle's map
+MAX_OBJECT_BYTES = 1 << 24  # one object's payload on air (a 40-vehicle run's largest is ~0.3 MB)
+MAX_POINTS = 1 << 22  # points of one point cloud (a full 64 x 1800 scan is 115,200)
+MAX_SPEED_MPS = 100.0
+MAX_ACCEL_MPS2 = 100.0
+MAX_WAYPOINTS = 1024
+MAX_ITEMS = 1 << 16  # transmissions, receptions, segments, lanes: far beyond any run's
+MAX_RANGE_IMAGE = (1 << 14, 1 << 10)  # azimuth steps, beams
+PUBLIC_KEY_BYTES, SIGNATURE_BYTES = 32, 64
 
 # ---------------------------------------------------------------------------- records
 
@@ -25,6 +40,8 @@ class Pose:
     x_m: float
     y_m: float
     yaw_rad: float
+
+    INVARIANTS = (in_map("x_m"), in_map("y_m"), *finite("yaw_rad"))
 
 
 @record
@@ -37,6 +54,10 @@ class LidarConfig:
     azimuth_steps: int = 1800
     range_m: float = 100.0
     mount_height_m: float = 1.9
+
+    INVARIANTS = (within("beams", 1, MAX_RANGE_IMAGE[1]), within("azimuth_steps", 1, MAX_RANGE_IMAGE[0]),
+                  within("fov_up_deg", -90.0, 90.0), within("fov_down_deg", -90.0, 90.0),
+                  within("range_m", 0.0, 10_000.0), *finite("mount_height_m"))
 
     def elevations_rad(self) -> np.ndarray:
         return np.deg2rad(np.linspace(self.fov_up_deg, self.fov_down_deg, self.beams))
@@ -56,12 +77,18 @@ class Lane:
     light_id: int  # traffic light governing the lane's end, -1 if none
     stop_s_m: float  # arc length of the stop line along the centreline, -1 if none
 
+    INVARIANTS = (within("centerline", -MAP_BOUND_M, MAP_BOUND_M), *finite("width_m", "speed_limit_mps", "stop_s_m"),
+                  within("light_id", -1, MAX_ITEMS))
+
 
 @record
 class TrafficLight:
     light_id: int
     x_m: float
     y_m: float
+
+    INVARIANTS = (within("light_id", 0, MAX_ITEMS), within("x_m", -MAP_BOUND_M, MAP_BOUND_M),
+                  within("y_m", -MAP_BOUND_M, MAP_BOUND_M))
 
 
 @record
@@ -80,6 +107,9 @@ class VehicleSpec:
     max_brake_mps2: float
     max_steer_rad: float
 
+    INVARIANTS = tuple(within(f, 0.0, 1000.0) for f in ("length_m", "width_m", "height_m", "wheelbase_m",
+                                                        "max_accel_mps2", "max_brake_mps2", "max_steer_rad"))
+
 
 # ---------------------------------------------------------------------------- messages
 
@@ -96,6 +126,11 @@ class MapMsg:
     lights: list[TrafficLight]
     buildings: Annotated[np.ndarray, Array("<f8", (None, 6))]  # static prisms [cx, cy, yaw, length, width, height]
 
+    INVARIANTS = (*STAMPED, at_most("lanes", MAX_ITEMS), at_most("drivable", MAX_ITEMS),
+                  each("drivable", within("polygon", -MAP_BOUND_M, MAP_BOUND_M)), Invariant(
+                      ("lights",), lambda v: None if len({x.light_id for x in v}) == len(v) else "a light id twice"),
+                  within("buildings", -MAP_BOUND_M, MAP_BOUND_M, slice(0, 2)), *finite("buildings"))
+
 
 @message(2)
 class Mission:
@@ -111,6 +146,9 @@ class Mission:
     lidar: LidarConfig
     decision_interval_s: float
 
+    INVARIANTS = (*STAMPED, *vid("vid"), within("route", -MAP_BOUND_M, MAP_BOUND_M), at_most("route", MAX_ITEMS),
+                  within("cruise_speed_mps", 0.0, MAX_SPEED_MPS), within("decision_interval_s", 1e-3, 10.0))
+
 
 @message(3)
 class Tick:
@@ -120,6 +158,11 @@ class Tick:
     t_sim_s: float
     live: list[int]
     lights: list[LightState]
+
+    INVARIANTS = (*STAMPED, at_most("live", MAX_VID), each("live", within("vid", 0, MAX_VID - 1)),
+                  Invariant(("live",), lambda v: None if all(a < b for a, b in zip(v, v[1:])) else
+                            "is not strictly ascending"),
+                  Invariant(("lights",), lambda v: None if len({x.light_id for x in v}) == len(v) else "a light twice"))
 
 
 @message(4, version=2)
@@ -139,6 +182,10 @@ class Scan:
     pose: Pose
     speed_mps: float
     range_cm: Annotated[np.ndarray, Array("<u2", (None, None))]  # (azimuth_steps, beams)
+
+    INVARIANTS = (*STAMPED, *vid("vid"), within("speed_mps", -MAX_SPEED_MPS, MAX_SPEED_MPS),
+                  Invariant(("range_cm",), lambda a: None if a.shape[0] <= MAX_RANGE_IMAGE[0] and
+                            a.shape[1] <= MAX_RANGE_IMAGE[1] else f"a {a.shape} range image: at most {MAX_RANGE_IMAGE}"))
 
     def points(self, lidar: LidarConfig) -> np.ndarray:
         """float32 (n, 3) sensor-frame points, azimuth-major, rays without a return left out."""
@@ -163,6 +210,10 @@ class WorldTruth:
     speed_mps: Annotated[np.ndarray, Array("<f4", (None,))]
     size_m: Annotated[np.ndarray, Array("<f4", (None, 3))]  # length, width, height
 
+    INVARIANTS = (*STAMPED, *vid("vids"), unique("vids"), same_rows("pose", "vids"), same_rows("speed_mps", "vids"),
+                  same_rows("size_m", "vids"), in_map("pose"), *finite("pose"),
+                  within("speed_mps", -MAX_SPEED_MPS, MAX_SPEED_MPS), within("size_m", 0.0, 1000.0))
+
 
 @message(5)
 class Command:
@@ -174,6 +225,9 @@ class Command:
     accel_mps2: float  # negative brakes
     steer_rad: float  # front-wheel angle, positive turns left
 
+    INVARIANTS = (*STAMPED, *vid("vid"), within("accel_mps2", -MAX_ACCEL_MPS2, MAX_ACCEL_MPS2),
+                  within("steer_rad", -np.pi, np.pi))
+
 
 @message(6)
 class Outcome:
@@ -182,6 +236,8 @@ class Outcome:
     tick: int
     t_sim_s: float
     result: dict[str, Any]
+
+    INVARIANTS = STAMPED
 
 
 # ------------------------------------------------------------------ V2V (channel proxy)
@@ -201,12 +257,28 @@ class ObjectMap:
     visibility: Annotated[np.ndarray, Array("<f4", (None, None), packed=True)]  # (n, m), v_(i,k),j: 1 = j sees it itself
     relevance: Annotated[np.ndarray, Array("<f4", (None, None), packed=True)]  # (n, m), r_(i,k),j in [0, 1]
 
+    INVARIANTS = (at_most("object_id", MAX_OBJECTS), within("object_id", 0, 1 << 53), unique("object_id"),
+                  same_rows("size_bytes", "object_id"), same_rows("centroid_xy", "object_id"),
+                  within("size_bytes", 0, MAX_OBJECT_BYTES), in_map("centroid_xy"),
+                  ascending("receivers"),
+                  Invariant(("visibility", "object_id", "receivers"), lambda t, o, r: _table(t, o, r)),
+                  Invariant(("relevance", "object_id", "receivers"), lambda t, o, r: _table(t, o, r)))
+
     def __post_init__(self) -> None:
         n, m = len(self.object_id), len(self.receivers)
         rows = {"size_bytes": len(self.size_bytes), "centroid_xy": len(self.centroid_xy)}
         tables = {"visibility": self.visibility.shape, "relevance": self.relevance.shape}
         if any(k != n for k in rows.values()) or any(shape != (n, m) for shape in tables.values()):
             raise ValueError(f"{n} objects and {m} receivers, but rows {rows} and tables {tables}")
+
+
+def _table(table: np.ndarray, objects: np.ndarray, receivers: np.ndarray) -> str | None:
+    """An object map's table of shares: each in [0, 1] (its shape is the record's own check)."""
+    if table.shape != (len(objects), len(receivers)):
+        return None  # ObjectMap.__post_init__ refuses it, naming the map's dimensions
+    if table.size and not (float(table.min()) >= 0.0 and float(table.max()) <= 1.0):  # NaN fails both
+        return "holds a value not in [0, 1]"
+    return None
 
 
 def _no_counts() -> np.ndarray:
@@ -249,6 +321,12 @@ class ControlMsg:
     unscheduled: Annotated[np.ndarray, Array("<i8", (None,))] = field(default_factory=_no_counts)  # (n,) or (0,): m per object
     digests: Annotated[np.ndarray, Array("|u1", (None, DIGEST_BYTES))] = field(default_factory=_no_digests)  # (n or 0, 16)
 
+    INVARIANTS = (*STAMPED, *vid("vid"), within("speed_mps", -MAX_SPEED_MPS, MAX_SPEED_MPS),
+                  at_most("trajectory", MAX_WAYPOINTS), waypoints("trajectory"), ascending("heard"),
+                  same_rows("unscheduled", "objects", lambda o: o.object_id, or_none=True),
+                  within("unscheduled", 0, MAX_TICK),
+                  same_rows("digests", "objects", lambda o: o.object_id, or_none=True))
+
     def starvation(self) -> np.ndarray:
         """int64 (n,): m of every object of the map; zeros if none was reported or the
         counts do not match the map row for row (every receiver reads the same zeros)."""
@@ -275,6 +353,8 @@ class CtrlBundle:
     receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (C,), ascending: the interval's live vehicles
     heard: Annotated[np.ndarray, Array("|b1", (None, None))]  # (C, S): receiver c heard message s
     messages: list[bytes]  # (S,) the raw messages (a ControlMsg, or one in a Signed envelope)
+
+    INVARIANTS = (*STAMPED, *vid("senders", "receivers"), nondecreasing("senders"), at_most("senders", MAX_ITEMS))
 
     def __post_init__(self) -> None:
         _check_mask("heard", self.heard, self.receivers, len(self.senders))
@@ -319,6 +399,8 @@ class Transmission:
     start_s: float
     payload: bytes
 
+    INVARIANTS = (within("object_id", 0, 1 << 53), within("start_s", 0.0, 10.0))
+
 
 @message(9)
 class DataTx:
@@ -329,6 +411,8 @@ class DataTx:
     vid: int
     transmissions: list[Transmission]
 
+    INVARIANTS = (*STAMPED, *vid("vid"), at_most("transmissions", MAX_ITEMS))
+
 
 @record
 class Reception:
@@ -336,6 +420,8 @@ class Reception:
     object_id: int
     rx_time_s: float  # end of airtime, from the start of the data phase
     payload: bytes
+
+    INVARIANTS = (*vid("sender"), within("object_id", 0, 1 << 53), within("rx_time_s", 0.0, 10.0))
 
 
 @message(10, version=2)
@@ -350,6 +436,8 @@ class DataBundle:
     receivers: Annotated[np.ndarray, Array("<i8", (None,))]  # (C,), ascending: the interval's live vehicles
     decoded: Annotated[np.ndarray, Array("|b1", (None, None))]  # (C, T): receiver c decoded reception t
     receptions: list[Reception]  # (T,) the transmissions somebody decoded
+
+    INVARIANTS = (*STAMPED, *vid("receivers"), at_most("receptions", MAX_ITEMS))
 
     def __post_init__(self) -> None:
         _check_mask("decoded", self.decoded, self.receivers, len(self.receptions))
@@ -368,6 +456,8 @@ class ChannelStats:
     t_sim_s: float
     stats: dict[str, Any]
 
+    INVARIANTS = STAMPED
+
 
 # ------------------------------------------------------- EMP edge relay (V2I baseline)
 
@@ -383,6 +473,9 @@ class EmpUpload:
     pose: Pose
     points_world: Annotated[np.ndarray, Array("<f4", (None, 3))]  # world frame
 
+    INVARIANTS = (*STAMPED, *vid("vid"), at_most("points_world", MAX_POINTS), in_map("points_world"),
+                  *finite("points_world"))
+
 
 @record
 class EmpSegment:
@@ -393,6 +486,9 @@ class EmpSegment:
     pose: Pose
     rx_time_s: float
     points_world: Annotated[np.ndarray, Array("<f4", (None, 3))]
+
+    INVARIANTS = (*vid("sender"), within("rx_time_s", 0.0, 10.0), at_most("points_world", MAX_POINTS),
+                  in_map("points_world"), *finite("points_world"))
 
 
 @message(21)
@@ -406,6 +502,9 @@ class EmpBundle:
     segments: list[EmpSegment]
     site_vids: Annotated[np.ndarray, Array("<i8", (None,))]  # (m,)
     site_xy: Annotated[np.ndarray, Array("<f8", (None, 2))]  # (m, 2)
+
+    INVARIANTS = (*STAMPED, *vid("receiver", "site_vids"), unique("site_vids"), same_rows("site_xy", "site_vids"),
+                  in_map("site_xy"), at_most("segments", MAX_ITEMS))
 
 
 # ------------------------------------------------------------------ agent -> judge
@@ -422,6 +521,10 @@ class AgentReport:
     fused_xy: Annotated[np.ndarray, Array("<f4", (None, 2))]  # every above-ground point of the fused view, world frame
     received_points: int  # how many of them came from other vehicles
     braking: bool  # the planner is braking for a predicted conflict
+
+    INVARIANTS = (*STAMPED, *vid("vid"), at_most("fused_xy", MAX_POINTS), in_map("fused_xy"),
+                  Invariant(("received_points", "fused_xy"), lambda n, xy: None if 0 <= n <= len(xy) else
+                            f"{n} of {len(xy)} points"))
 
 
 # ------------------------------------------------------------ authenticated V2X messages
@@ -441,6 +544,10 @@ class Certificate:
     public_key: bytes  # 32 bytes, raw Ed25519
     signature: bytes  # 64 bytes, the authority's
 
+    INVARIANTS = (*vid("vid"), *finite("valid_from_s", "valid_until_s"),
+                  Invariant(("valid_until_s", "valid_from_s"), lambda b, a: None if a <= b else "before valid_from_s"),
+                  byte_length("public_key", PUBLIC_KEY_BYTES), byte_length("signature", SIGNATURE_BYTES))
+
 
 @message(14)
 class Signed:
@@ -455,6 +562,8 @@ class Signed:
     body: bytes
     signature: bytes  # 64 bytes
 
+    INVARIANTS = (*STAMPED, byte_length("signature", SIGNATURE_BYTES))
+
 
 @message(16)
 class InShm:
@@ -464,6 +573,8 @@ class InShm:
     tick: int
     t_sim_s: float
     nbytes: int
+
+    INVARIANTS = (*STAMPED, within("nbytes", 0, 1 << 40))
 
 
 @message(15)
@@ -475,3 +586,5 @@ class Rejected:
     t_sim_s: float
     vid: int
     counts: dict[str, Any]  # {"total": n, "by_reason": {reason: n}, "by_stream": {stream: {reason: n}}}
+
+    INVARIANTS = (*STAMPED, *vid("vid"))

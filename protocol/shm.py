@@ -339,15 +339,18 @@ def run_directory(run_id: str, parent: Path = TMPFS) -> Iterator[Path | None]:
         os.close(lock)
 
 
-def remove_orphans(parent: Path = TMPFS) -> list[Path]:
+def remove_orphans(parent: Path = TMPFS, launcher: tuple[int, str] | None = None) -> list[Path]:
     """Remove the run directories whose launcher is gone: nobody holds their lock. A
     launcher holds it while its run lasts, in whatever pid namespace it runs, and lets
     go with its last file descriptor however it ends. A directory changed in the last
-    ``ORPHAN_AFTER_S`` is left alone (a launcher takes its lock just after making it)."""
+    ``ORPHAN_AFTER_S`` is left alone (a launcher takes its lock just after making it),
+    unless ``launcher`` (its pid and run id) names the one launcher whose directories to
+    remove: one its caller has seen exit (a sweep whose launcher was killed)."""
     gone = []
-    for path in parent.glob(f"{DIR_PREFIX}*"):
+    pattern = f"{DIR_PREFIX}*" if launcher is None else f"{DIR_PREFIX}{launcher[0]}-{launcher[1]}-*"
+    for path in parent.glob(pattern):
         try:
-            if time.time() - path.stat().st_mtime < ORPHAN_AFTER_S:
+            if launcher is None and time.time() - path.stat().st_mtime < ORPHAN_AFTER_S:
                 continue
             fd = os.open(path / LOCK_NAME, os.O_RDONLY)
         except FileNotFoundError:  # no lock: not a run's directory of ours

@@ -18,11 +18,12 @@ from deploy.run import WARM_ARGV
 
 # Property tests run the bounded, derandomized "ci" profile (the same examples every
 # run, no per-example deadline on a loaded machine); AUTOCAST_HYPOTHESIS=fuzz runs
-# 10,000 random examples per property instead.
+# 10,000 random examples per property instead (AUTOCAST_HYPOTHESIS_EXAMPLES=N: N).
 settings.register_profile("ci", max_examples=25, derandomize=True, deadline=None, database=None,
                           phases=[Phase.explicit, Phase.generate, Phase.shrink],
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-settings.register_profile("fuzz", max_examples=10_000, deadline=None,
+settings.register_profile("fuzz", max_examples=int(os.environ.get("AUTOCAST_HYPOTHESIS_EXAMPLES", "10000")),
+                          deadline=None,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.load_profile(os.environ.get("AUTOCAST_HYPOTHESIS", "ci"))
 

@@ -75,6 +75,12 @@ def _ref_record(cls: type):
             except codec._FieldError as err:
                 err.path.insert(0, f".{name}")
                 raise
+        for inv in codec.invariants(cls):  # its declared invariants, in order, the first field named
+            problem = inv.test(*(args[names.index(f)] for f in inv.fields))
+            if problem is not None:
+                err = codec._FieldError(problem)
+                err.path.insert(0, f".{inv.fields[0]}")
+                raise err
         try:
             return cls(*args)
         except ValueError as exc:  # a record's own check (__post_init__): named by where it sits, as codec words it

@@ -1,8 +1,10 @@
+import typing
+
 import msgpack
 import numpy as np
 import pytest
 
-from protocol import keys
+from protocol import codec, keys
 from protocol.codec import MalformedMessage, decode, decode_fields, encode
 from protocol.messages import Command, ControlMsg, LidarConfig, MapMsg, Mission, ObjectMap, Outcome, Pose, Scan, Tick, \
     VehicleSpec, Lane, LightState, TrafficLight
@@ -171,10 +173,12 @@ def test_a_packed_table_keeps_every_bit_pattern():
                      0xFF800000, 0x00000000, 0x3F800000], np.uint32)
     vis = bits.view(np.float32).reshape(3, 4)
     rel = bits[::-1].copy().view(np.float32).reshape(3, 4)
-    msg = _packed_msg(vis, rel)
-    got = decode(encode(msg), ControlMsg).objects
-    assert got.visibility.view(np.uint32).tolist() == vis.view(np.uint32).tolist()
-    assert got.relevance.view(np.uint32).tolist() == rel.view(np.uint32).tolist()
+    table = codec._converter(typing.get_type_hints(ObjectMap, include_extras=True)["visibility"])
+    for t in (vis, rel):
+        assert table(codec._packed_to_wire(t)).view(np.uint32).tolist() == t.view(np.uint32).tolist()
+    # a share outside [0, 1] (NaN, infinities, 1.0's neighbour above) is no share: the message is refused
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg\.objects\.visibility: holds a value not in \[0, 1\]"):
+        decode(encode(_packed_msg(vis, rel)), ControlMsg)
 
 
 @pytest.mark.parametrize("table, why", [

@@ -190,7 +190,7 @@ def test_payloads_cross_processes_sessions_through_shared_memory_and_bad_notices
     sub = shm.subscribe(b, key, tmp_path, Tick, inbox.put, drops, missed)
     _wait_matching(pub._twin, True)
     assert not pub._pub.matching_status.matching  # the shared-memory reader does not listen on the key itself
-    ticks = [Tick(t, t * 0.1, [1, 2, t], []) for t in range(4)]
+    ticks = [Tick(t, t * 0.1, [1, 2, 3 + t], []) for t in range(4)]
     ticks[2] = Tick(2, 0.2, list(range(3000)), [])  # more than tick 0 left room for in its file
     pub.put(0, 0.0, encode(ticks[0]))
     assert inbox.wait_for(1) == [(key, ticks[0])]

@@ -67,7 +67,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def profile_from(args: argparse.Namespace, model: Model = OURS):
     """The profile named, else EMP's relay or the model's V2V radio, with the flags' reception model."""
     name = args.profile or ("emp-v2i" if args.mode == "emp" else model.channel_profile)
-    profile = get_profile(name)
+    profile = get_profile(name, model.channel_loss)
     overrides = {f: getattr(args, a) for f, a in (("curve", "curve"), ("range_m", "range_m"), ("sigma_db", "sigma_db"),
                                                    ("p_fixed", "p_fixed"), ("cutoff_m", "cutoff_m"))
                  if getattr(args, a) is not None}

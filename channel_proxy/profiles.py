@@ -8,7 +8,7 @@ scheduling instances from the same profile then agree on B, T_n and N.
 from __future__ import annotations
 
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from channel_proxy.loss import PrrModel
 from protocol import plugins
@@ -48,6 +48,7 @@ class ChannelProfile:
 
 
 PROFILES: dict[str, ChannelProfile] = {}
+LOSSLESS = PrrModel(curve="fixed", p_fixed=1.0, range_m=1e6)  # every packet arrives, at any distance
 
 
 def register_profile(profile: ChannelProfile) -> ChannelProfile:
@@ -57,8 +58,15 @@ def register_profile(profile: ChannelProfile) -> ChannelProfile:
     return profile
 
 
-def get_profile(name: str) -> ChannelProfile:
-    """A registered profile, or the ``ChannelProfile`` at an import path ``package.module:NAME``."""
+def get_profile(name: str, channel_loss: str = "modelled") -> ChannelProfile:
+    """A registered profile, or the ``ChannelProfile`` at an import path ``package.module:NAME``;
+    with ``channel_loss="none"`` (a model's setting, ``protocol.model``) its reception model is
+    replaced by one that loses nothing (capacity, frames and collisions stay)."""
+    profile = _named_profile(name)
+    return profile if channel_loss == "modelled" else replace(profile, prr=LOSSLESS)
+
+
+def _named_profile(name: str) -> ChannelProfile:
     if name in PROFILES:
         return PROFILES[name]
     if plugins.is_import_path(name):
@@ -87,7 +95,7 @@ register_profile(ChannelProfile(
     description="DSRC / 802.11p 10 MHz QPSK 1/2 (6 Mbps), no frame structure; R = 150 m urban",
 ))
 register_profile(ChannelProfile(
-    "ideal", 7.2e6, 0.01, prr=PrrModel(curve="fixed", p_fixed=1.0, range_m=1e6),
+    "ideal", 7.2e6, 0.01, prr=LOSSLESS,
     description="7.2 Mbps, no channel loss, unlimited range (collisions and capacity still apply)",
 ))
 register_profile(ChannelProfile(

@@ -6,7 +6,7 @@ the model behind the paper's evaluation (its text first, the authors' evaluated 
 where the text is silent; ``docs/models.md`` cites each value): an object's points
 thinned to 5 cm columns, 24 bytes a point on the air, Agnostic in a fresh random order
 every interval, no spare-airtime fill, a received object used in the interval it
-arrives in only, the authors' LiDAR, one global schedule over one 100 ms frame.
+arrives in only, the authors' LiDAR, one global schedule over one 100 ms frame, no channel loss.
 
 Every setting can also be set alone on top of a profile (``autocast run --model paper
 --model-set hold_s=1.0``). The world, the proxy and every agent resolve the same
@@ -23,6 +23,7 @@ from typing import Any
 
 OBJECT_POINTS = ("all", "column")  # every point above the ground | one point per column of ``column_m``
 AGNOSTIC_ORDERS = ("rotation", "shuffle")
+CHANNEL_LOSSES = ("modelled", "none")  # the radio profile's reception model | every packet in range arrives
 
 
 class ModelError(ValueError):
@@ -48,6 +49,7 @@ class Model:
     group_size: int = 4  # senders per agreement group; 0: one group of every member (a global schedule)
     channel_profile: str = "lte-direct"  # the V2V radio (channel_proxy.profiles), unless a run names its own
     emp_bytes_per_point: int = 6  # EMP's segments on the air
+    channel_loss: str = "modelled"  # V2V and relay loss: the radio profile's reception model, or none at all
 
     def __post_init__(self) -> None:
         _check(self)
@@ -83,6 +85,8 @@ def _check(m: Model) -> None:
         raise ModelError(f"object_points: {m.object_points!r} is not one of {', '.join(OBJECT_POINTS)}")
     if m.agnostic_order not in AGNOSTIC_ORDERS:
         raise ModelError(f"agnostic_order: {m.agnostic_order!r} is not one of {', '.join(AGNOSTIC_ORDERS)}")
+    if m.channel_loss not in CHANNEL_LOSSES:
+        raise ModelError(f"channel_loss: {m.channel_loss!r} is not one of {', '.join(CHANNEL_LOSSES)}")
     if m.bytes_per_point not in (6, 24):
         raise ModelError(f"bytes_per_point: {m.bytes_per_point!r} is not 6 or 24")
     if m.emp_bytes_per_point < 1:
@@ -129,6 +133,7 @@ PAPER = Model(
     group_size=0,
     channel_profile="lte-direct-100ms",
     emp_bytes_per_point=24,
+    channel_loss="none",
 )
 
 PROFILES: dict[str, Model] = {OURS.name: OURS, PAPER.name: PAPER}

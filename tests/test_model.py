@@ -9,7 +9,7 @@ from deploy import table
 from deploy.run import InputError, options_from, parse_args
 from protocol.messages import Pose
 from protocol.model import OURS, PAPER, ModelError, lidar_config, resolve
-from vehicle_agent.__main__ import scheduler_of
+from vehicle_agent.__main__ import Pipeline, scheduler_of
 from vehicle_agent.fusion import ReceivedStore
 from vehicle_agent.payload import (HEADER_BYTES, column_thinned, decode_object, decode_objects, encode_objects,
                                    payload_size)
@@ -178,3 +178,26 @@ def test_an_agent_holds_a_received_object_as_its_model_says_after_its_warm_up(mo
     assert len(ego.dataplane.shared_batch) > 0
     ego.fuse(ego.perceive(scans[1][0]), [])
     assert (len(ego.dataplane.shared_batch) > 0) == held
+
+
+@pytest.mark.parametrize("mode, radio", [("v2v", "lte-direct-100ms"), ("emp", "emp-v2i")])
+def test_no_channel_loss_keeps_the_radio_and_loses_nothing(mode, radio):
+    """The paper's model has no channel loss (the authors' simulator wires none in): the proxy and
+    every agent play the same radio, each packet in it arriving at any distance."""
+    from channel_proxy.__main__ import parse_args as proxy_args, profile_from
+    lossy = profile_from(proxy_args(["--mode", mode, "--profile", radio]), OURS)
+    lossless = profile_from(proxy_args(["--mode", mode]), PAPER)
+    assert lossless.name == radio and lossless.frame_bytes == lossy.frame_bytes
+    far = np.array([50.0, 170.0, 600.0])
+    assert lossy.prr.prr(far)[-1] < 0.5 and list(lossless.prr.prr(far)) == [1.0, 1.0, 1.0]
+    assert resolve("paper", ["channel_loss=modelled"]).label() == "paper+channel_loss=modelled"
+    with pytest.raises(ModelError, match="^channel_loss:"):
+        resolve("ours", ["channel_loss=some"])
+    if mode == "v2v":  # an agent's p_ij comes from the same reception model as the proxy's draws
+        from world_server.scenarios import ScenarioParams
+        from world_server.sim import Simulation
+
+        sim = Simulation(ScenarioParams(scenario="red_light", vehicles=3, seed=0))
+        for model, prr in ((OURS, lossy.prr), (PAPER, lossless.prr)):
+            step = Pipeline(sim.mission(0), sim.scenario.roadmap.to_msg(), "autocast", radio, model=model)
+            assert step.agreement.prr == prr

@@ -394,7 +394,7 @@ class Pipeline:
         self.agent = Agent(mission, mapmsg, model)
         self.lane_follower = LaneFollower(mission)
         self.link = link
-        self.agreement = AgreementConfig.from_profile(get_profile(profile_name),
+        self.agreement = AgreementConfig.from_profile(get_profile(profile_name, model.channel_loss),
                                                       scheduler=scheduler or scheduler_of(scheme, model),
                                                       group_size=model.group_size or None)
         self.emp_held: dict[int, tuple[float, np.ndarray]] = {}  # EMP: each sender's last segment (time, points)

@@ -15,8 +15,10 @@ MAX_LINES = {"README.md": 150, "docs/performance.md": 250}
 ISSUE = re.compile(r"\bissues?\s+#?\d+", re.IGNORECASE)
 # A commit hash as git prints one: 7 to 40 lowercase hex digits holding both a digit and
 # a letter (so neither a number like 1800000 nor a word like "defaced"). Inside backticks
-# or a fenced block it counts too: no page needs one.
-HEX_WORD = re.compile(r"\b[0-9a-f]{7,40}\b")
+# or a fenced block it counts too: no page needs one. Not a hash: the last part of a
+# hyphenated name, as in a sweep's run key, whose settings digest ends it
+# (`left_turn-v20-c30-d0-autocast-s0-t40-mpaper-a4efd27e`).
+HEX_WORD = re.compile(r"(?<![\w-])[0-9a-f]{7,40}\b")
 # Dates of work periods: 2026-12-01 and the like. (A run id's compact 20261201-155734 is
 # not one.)
 DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")

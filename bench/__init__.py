@@ -1,7 +1,8 @@
 """Benchmarks: scripts that print figures (``autocast bench NAME [--quick]``).
 
 Every bench ends with one headline line, ``NAME: key=value key=value ...`` (medians).
-``HEADLINE_KEYS`` is what each prints: README.md documents these keys, and
+``HEADLINE_KEYS`` is what each prints: README.md lists these keys, docs/performance.md
+says what each means, and
 tests/test_benches.py runs every bench with ``--quick`` and checks them, so a bench
 that breaks or drops a key fails the suite instead of rotting.
 """

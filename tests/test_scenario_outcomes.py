@@ -1,8 +1,7 @@
 """One pinned configuration per scenario where the ego alone fails and AutoCast passes
 safely, end to end through ``autocast run`` (real processes; the red-light violation is
 tests/test_end_to_end.py). Both wait out the oncoming traffic behind the collider, so
-the runs get 25 s of sim time: the safe passages of the sweep in docs/planning.md end
-at 18-20 s."""
+the runs get 25 s of sim time (safe passages in these scenes end at 18-20 s of sim time)."""
 
 from __future__ import annotations
 

@@ -415,7 +415,7 @@ def decoder(name: str) -> Callable[[bytes], Any]:
     if name == OBJECT:
         return decode_object
     if name == ENVELOPE:
-        from deploy.recorder import peek_envelope
+        from deploy.record.recorder import peek_envelope
         return peek_envelope
     cls = _CLASS_OF[name]
     return lambda payload: decode(payload, cls)

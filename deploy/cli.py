@@ -15,8 +15,8 @@ from bench import HEADLINE_KEYS
 
 BENCHES = tuple(HEADLINE_KEYS)
 # command -> module whose ``main(argv) -> int`` runs it
-SUBCOMMANDS = {"sweep": "deploy.sweep", "report": "deploy.report", "view": "deploy.view", "export": "deploy.export",
-               "deploy": "deploy.hosts"}
+SUBCOMMANDS = {"sweep": "deploy.experiments.sweep", "report": "deploy.experiments.report", "view": "deploy.record.view", "export": "deploy.record.export",
+               "deploy": "deploy.multihost.hosts"}
 
 USAGE = """usage: autocast <command> [args]
 
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
     if cmd == "run":
-        from deploy.run import main as run_main
+        from deploy.launch.run import main as run_main
         code = run_main(rest)
         if own_process:
             exit_now(code)

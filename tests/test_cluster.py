@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy import cluster, report, sweep
-from deploy.sweep import RunKey
+from deploy.experiments import cluster, report, sweep
+from deploy.experiments.sweep import RunKey
 from tests.conftest import free_port, wait_until
 from tests.test_sweep import autocast, leftovers, lines
 

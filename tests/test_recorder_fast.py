@@ -23,8 +23,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bench import fuzz
-from deploy import recorder
-from deploy.recorder import JSON_OMITTED, to_json
+from deploy.record import recorder
+from deploy.record.recorder import JSON_OMITTED, to_json
 
 from protocol.codec import MalformedMessage, decode, encode, message_class
 from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, WorldTruth

@@ -17,9 +17,9 @@ import pytest
 
 from mcap.reader import make_reader
 
-from deploy import report, sweep
-from deploy.recorder import JSON_PREFIX
-from deploy.sweep import RunKey
+from deploy.experiments import report, sweep
+from deploy.record.recorder import JSON_PREFIX
+from deploy.experiments.sweep import RunKey
 from tests.conftest import wait_until
 
 # ---------------------------------------------------------------------------- the matrix
@@ -68,7 +68,7 @@ def test_run_key_name_is_a_valid_run_id():
 
 
 def test_a_model_other_than_ours_is_in_every_key_and_every_run_s_flags(tmp_path):
-    from deploy.sweep import launcher_args, spec_from
+    from deploy.experiments.sweep import launcher_args, spec_from
 
     values = {**sweep.preset_values("smoke"), "model": "paper", "model_settings": {"hold_s": 1.0}}
     spec = spec_from(values, "smoke")
@@ -430,7 +430,7 @@ def test_the_delay_table_names_the_control_messages_it_cannot_read(tmp_path, cap
     says how many it left; the JSON mirror of a readable one is not counted as unreadable."""
     import msgpack
 
-    from deploy.recorder import McapLog
+    from deploy.record.recorder import McapLog
     from protocol.codec import encode
     from protocol.messages import ChannelStats, ControlMsg, ObjectMap, Pose
 
@@ -449,9 +449,9 @@ def test_the_delay_table_names_the_control_messages_it_cannot_read(tmp_path, cap
         log.write("ac/r/net/ctrl/tx/2", msgpack.packb(old), 2)
         log.write("ac/r/net/stats", encode(stats), 3)
         log.finish()
-    with caplog.at_level("WARNING", logger="deploy.report"):
+    with caplog.at_level("WARNING", logger="deploy.experiments.report"):
         sent = report.schedule_of_run(path)
     assert [(s.sender, s.object_id) for s in sent] == [(1, 7)]  # vehicle 2's object: no readable offer
     assert sent[0].reward == 1.0  # (1 - v) r of its one receiver
-    warnings = [r.getMessage() for r in caplog.records if r.name == "deploy.report"]
+    warnings = [r.getMessage() for r in caplog.records if r.name == "deploy.experiments.report"]
     assert len(warnings) == 1 and "1 control messages unreadable" in warnings[0] and "version" in warnings[0]

@@ -54,7 +54,7 @@ class Log:
     def read(path: Path) -> Log:
         from mcap.reader import make_reader
 
-        from deploy.recorder import peek_envelope
+        from deploy.record.recorder import peek_envelope
 
         with open(path, "rb") as f:
             reader = make_reader(f)

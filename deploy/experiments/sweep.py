@@ -4,7 +4,7 @@ A sweep is the product scenarios x collider speeds x intersection deltas x vehic
 counts x schemes x seeds, from a preset (``paper``, ``smoke``) or a TOML/JSON file,
 narrowed by flags. Each run is ``python -m deploy.cli run ... --json`` in its own
 process group, so a run that crashes is one failed record, not a failed sweep; the
-launchers are forked from one warm parent kept for the whole sweep (``deploy/factory.py``:
+launchers are forked from one warm parent kept for the whole sweep (``processes/factory.py``:
 no run imports the stack or loads a kernel again). Every
 finished run, judged or failed, is appended to ``<sweep dir>/results.jsonl`` as one
 JSON line (flushed and fsynced): the same command again skips every run already
@@ -16,7 +16,7 @@ Outputs in the sweep directory: ``plan.json`` (the matrix, settings, estimate),
 and stderr). Exit code: 0 every planned run judged, 1 some run failed (recorded with
 its error), 2 bad input, 3 the cluster's scheduler was lost (``--cluster``), 130
 interrupted (Ctrl-C: the running launchers stop their processes; nothing is left).
-With ``--cluster`` each run is a task on a Dask worker instead (``deploy/cluster.py``).
+With ``--cluster`` each run is a task on a Dask worker instead (``deploy/experiments/cluster.py``).
 """
 
 from __future__ import annotations
@@ -40,17 +40,17 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, NoReturn, TextIO
 
-from deploy import factory as process_factory
-from deploy.procs import has_argument
+from processes import factory as process_factory
+from processes.manager import has_argument
 from protocol import shm
 
-log = logging.getLogger("deploy.sweep")
+log = logging.getLogger("deploy.experiments.sweep")
 
 EXIT_OK, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 RESULTS, PLAN, LOCK = "results.jsonl", "plan.json", "sweep.lock"
 LAUNCHER_GRACE_S = 30.0  # a launcher stops its processes within ~15 s of SIGINT (docs/running.md)
-ORPHAN_GRACE_S = 10.0  # a killed launcher's factory stops its processes within ~3.5 s (deploy/factory.py)
-LAUNCHER_MODULES = ("deploy.cli", "deploy.run", *process_factory.RUN_MODULES)  # what a launcher imports
+ORPHAN_GRACE_S = 10.0  # a killed launcher's factory stops its processes within ~3.5 s (processes/factory.py)
+LAUNCHER_MODULES = ("deploy.cli", "deploy.launch.run", *process_factory.RUN_MODULES)  # what a launcher imports
 LAUNCHER_SLACK_S = 120.0  # beyond the run's own --timeout-s: start-up and shutdown
 STDERR_TAIL_CHARS = 2000
 BIG_RESULT_CHARS = 1000  # outcome fields longer than this as JSON (the distance series) stay in outcome.json
@@ -320,7 +320,7 @@ def narrowed(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
 def check_scenarios(keys: Iterable[RunKey]) -> None:
     """Build every distinct scenario of the matrix once (~30 ms each, 0.3 s at 40 vehicles):
     a combination the world cannot set up is refused before hours of runs, naming it."""
-    from deploy.table import connected_vids
+    from deploy.launch.table import connected_vids
     from world_server.scenarios import ScenarioError, params_from_dict
 
     seen = set()
@@ -819,7 +819,7 @@ def kill_run_processes(run_dir: Path, run_id: str) -> int:
 
 def warm_up(key: RunKey) -> None:
     """Compile or load the numba caches once, so each run can skip it (``--no-warm-up``)."""
-    from deploy.run import warm_numba_caches
+    from deploy.launch.run import warm_numba_caches
     from world_server.scenarios import params_from_dict
 
     warm_numba_caches(params_from_dict({"scenario": key.scenario, "vehicles": key.vehicles}))
@@ -977,7 +977,7 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
             log.info("nothing to run: every run of the plan is recorded in %s", out / RESULTS)
             return _exit_code(spec, keys, out)
         if args.cluster:  # the same runs and records, each run a task on a Dask worker
-            from deploy.cluster import run_on_cluster
+            from deploy.experiments.cluster import run_on_cluster
 
             return run_on_cluster(sweep, keys, todo, args.cluster)
         t0 = time.monotonic()

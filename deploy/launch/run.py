@@ -2,7 +2,7 @@
 
 The launcher validates every flag before anything starts, warms the numba caches once,
 becomes the run's Zenoh hub (a router on a free loopback port), and starts what
-``deploy.table.processes`` lists: the recorder first (and waits until its subscription
+``deploy.launch.table.processes`` lists: the recorder first (and waits until its subscription
 has reached the hub), then the world, the channel proxy and one agent per connected
 vehicle. It waits for the world's judged ``Outcome``, watches the processes meanwhile
 (the world dying without an outcome fails the run; a dead agent is the world's
@@ -34,9 +34,9 @@ from typing import Any, NoReturn
 
 import zenoh
 
-from deploy import factory as process_factory
-from deploy import table
-from deploy.procs import ProcessManager, ProcSpec, RunCpu, batch_scheduling, exit_records, usable_cores
+from processes import factory as process_factory
+from deploy.launch import table
+from processes.manager import ProcessManager, ProcSpec, RunCpu, batch_scheduling, exit_records, usable_cores
 from protocol import faults, keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import MapMsg, Mission, Outcome, Scan, Tick
@@ -46,7 +46,7 @@ from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_sco
 from world_server.__main__ import summary
 from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
 
-log = logging.getLogger("deploy.run")
+log = logging.getLogger("deploy.launch.run")
 
 EXIT_SAFE, EXIT_JUDGED, EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 RECORDER_READY_TIMEOUT_S = 30.0
@@ -264,7 +264,7 @@ def free_endpoint() -> str:
 
 # ``warm_numba_caches`` as a command of its own (the test suite's first step, and its check
 # that nothing is left to compile): the kernels are the same for every scenario
-WARM_ARGV = (sys.executable, "-c", "from deploy.run import warm_numba_caches; "
+WARM_ARGV = (sys.executable, "-c", "from deploy.launch.run import warm_numba_caches; "
              "from world_server.scenarios import params_from_dict; "
              "warm_numba_caches(params_from_dict({'scenario': 'left_turn', 'vehicles': 5}))")
 
@@ -328,9 +328,9 @@ def _warm_agent_kernels(sim) -> None:
 
 
 def prepare(cfg: table.RunConfig) -> table.RunConfig:
-    """The run's V2X credentials, if it signs (``deploy.credentials``); before the table's
+    """The run's V2X credentials, if it signs (``deploy.launch.credentials``); before the table's
     command lines are made."""
-    from deploy import credentials
+    from deploy.launch import credentials
 
     return credentials.issue_v2x(cfg) if cfg.signing and not cfg.authority else cfg
 
@@ -340,7 +340,7 @@ def open_hub(stack: ExitStack, run_dir: Path, tries: int = 5,
     """The launcher's router session on a free loopback port, closed with ``stack``;
     ``locked``: the run whose Zenoh is locked down (its processes' passwords and ACL)."""
     if locked is not None and locked.lock_down:
-        from deploy import credentials
+        from deploy.launch import credentials
 
         config = credentials.hub_config(locked, HUB_CONFIG)
     else:
@@ -576,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     log.info("run %s: %s, %d vehicles, scheme %s -> %s", opts.run.run_id, opts.run.params.scenario,
              opts.run.params.vehicles, opts.run.scheme, opts.run.run_dir)
-    # this launcher and all it starts: throughput in lock-step, wake-up latency in real time (deploy.procs)
+    # this launcher and all it starts: throughput in lock-step, wake-up latency in real time (processes.manager)
     batch_scheduling(batch=not opts.run.realtime)
     outcome = launch(opts, stop)
     return report(outcome, opts.run, args.json, time.monotonic() - t0)

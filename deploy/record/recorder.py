@@ -1,4 +1,4 @@
-"""The run's recorder: ``python -m deploy.recorder --run-id R --out runs/R/run.mcap``.
+"""The run's recorder: ``python -m deploy.record.recorder --run-id R --out runs/R/run.mcap``.
 
 One process subscribed to a run's keys (``ac/<run>/...``) writes one MCAP file:
 a channel per key, message encoding ``msgpack`` (the payload bytes exactly as they
@@ -63,7 +63,7 @@ from protocol import messages
 from protocol.messages import Outcome, Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 
-log = logging.getLogger("deploy.recorder")
+log = logging.getLogger("deploy.record.recorder")
 
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "autocast-dataclass"  # JSON: type id, version, field names and types
@@ -640,7 +640,7 @@ class Recorder:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m deploy.recorder", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.record.recorder", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-id", required=True, help="the run's id (records ac/<run>/**)")
     ap.add_argument("--out", required=True, type=Path, metavar="FILE", help="the MCAP file to write")

@@ -65,7 +65,7 @@ import numpy as np
 import zenoh
 
 from bench import fuzz
-from deploy.record.recorder import peek_envelope
+from protocol.codec import peek_envelope
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,

@@ -14,7 +14,8 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from deploy.record.recorder import JSON_PREFIX, McapLog, json_schema_of, peek_envelope, subscriptions, to_json
+from deploy.record.recorder import JSON_PREFIX, McapLog, json_schema_of, subscriptions, to_json
+from protocol.codec import peek_envelope
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Command, Outcome, Pose, Scan, Tick

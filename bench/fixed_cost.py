@@ -178,7 +178,7 @@ def warm_parent():
     """A context in which ``measure(..., "warm")`` forks its launchers: this process
     imports the stack and warms the numba caches, then makes the factory (as a sweep does)."""
     from processes import factory as process_factory
-    from deploy.launch.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from deploy.experiments.sweep import LAUNCHER_MODULES
     from world_server.scenarios import params_from_dict
 

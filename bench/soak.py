@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)  # a killed launcher's orphans come to us, not to init
     if not args.no_warm_up:
-        from deploy.launch.run import warm_numba_caches
+        from deploy.launch.warmup import warm_numba_caches
         from world_server.scenarios import params_from_dict
 
         for scenario in SCENARIOS:  # what every run then skips (--no-warm-up), as a sweep does

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, Phase, settings
 
-from deploy.launch.run import WARM_ARGV
+from deploy.launch.warmup import WARM_ARGV
 
 # Property tests run the bounded, derandomized "ci" profile (the same examples every
 # run, no per-example deadline on a loaded machine); AUTOCAST_HYPOTHESIS=fuzz runs

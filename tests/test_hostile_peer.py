@@ -31,7 +31,8 @@ from deploy.launch import table
 from bench.hostile import KEY_TYPES, NOT_DATA, key_functions
 from processes.manager import ProcSpec
 from deploy.record.recorder import EGO_VID, McapLog, subscriptions
-from deploy.launch.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare, warm_numba_caches
+from deploy.launch.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare
+from deploy.launch.warmup import warm_numba_caches
 from protocol import keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ChannelStats, CtrlBundle, DataBundle, Outcome, Rejected, Tick

@@ -199,7 +199,7 @@ def worker_factory() -> process_factory.Factory | None:
 def zygote_warm_up() -> None:
     """In the worker's zygote: load (or, on a new host, compile) every numba kernel, as
     a local sweep does before its first run."""
-    from deploy.launch.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from world_server.scenarios import ScenarioParams
 
     warm_numba_caches(ScenarioParams())

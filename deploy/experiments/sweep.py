@@ -819,7 +819,7 @@ def kill_run_processes(run_dir: Path, run_id: str) -> int:
 
 def warm_up(key: RunKey) -> None:
     """Compile or load the numba caches once, so each run can skip it (``--no-warm-up``)."""
-    from deploy.launch.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from world_server.scenarios import params_from_dict
 
     warm_numba_caches(params_from_dict({"scenario": key.scenario, "vehicles": key.vehicles}))

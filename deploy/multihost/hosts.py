@@ -39,9 +39,9 @@ from typing import Any
 
 import zenoh
 
-from deploy.launch import run, table
-from processes.manager import ProcessManager, ProcSpec
+from deploy.launch import run, table, warmup
 from deploy.multihost.remote import PID_LINE
+from processes.manager import ProcessManager, ProcSpec
 from protocol.session import ZenohArgs, session_scope
 
 log = logging.getLogger("deploy.multihost.hosts")
@@ -509,7 +509,7 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
         routers = {h.name: written[h.router] for h in hf.hosts}
         launcher_config = str(written[credentials.LAUNCHER])
     if opts.warm_up:
-        run.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
+        warmup.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
         warm_hosts([h for h in hf.hosts if h.warm_up], cfg.params, cfg.log_dir, stop)
     host_of = {spec.name: host for spec, host in placed} | {h.router: h for h in hf.hosts}
     procs = HostProcessManager(cfg.log_dir, host_of)

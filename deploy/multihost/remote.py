@@ -31,7 +31,7 @@ def exec_module(argv: list[str]) -> None:
 def warm(params_json: str) -> int:
     import logging
 
-    from deploy.launch.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from world_server.scenarios import params_from_dict
 
     logging.basicConfig(level="INFO", format="%(asctime)s warm %(message)s")

@@ -309,10 +309,10 @@ def launch(argv: list[str]) -> int:
     if os.getppid() != parent:  # the worker died before the signal was armed
         print(f"autocast run: the worker (pid {parent}) is gone", file=sys.stderr)
         return EXIT_INTERRUPTED
-    from deploy.cli import exit_now
-    from deploy.cli import main as cli_main
+    from deploy.launch.run import exit_now
+    from deploy.launch.run import main as run_main
 
-    exit_now(cli_main(["run", *argv[1:]]))
+    exit_now(run_main(argv[1:]))
     return EXIT_INTERRUPTED  # not reached
 
 

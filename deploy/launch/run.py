@@ -518,6 +518,17 @@ def main(argv: list[str] | None = None) -> int:
     return report(outcome, opts.run, args.json, time.monotonic() - t0)
 
 
+def exit_now(code: int) -> None:
+    """End the process without the interpreter's teardown. After a run everything is
+    closed and written (the hub, the processes, the outcome); what is left is freeing
+    the numba kernels' LLVM modules one by one, measured at 0.3 s of CPU (1.5 s of wall
+    time on the loaded 2-core machine) per run."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
+
+
 def json_ready(value: Any) -> Any:
     """``value`` with every float JSON cannot carry (inf, NaN) as None, at any depth."""
     if isinstance(value, float):

@@ -179,7 +179,7 @@ def warm_parent():
     imports the stack and warms the numba caches, then makes the factory (as a sweep does)."""
     from processes import factory as process_factory
     from deploy.launch.warmup import warm_numba_caches
-    from deploy.experiments.sweep import LAUNCHER_MODULES
+    from deploy.experiments.runner import LAUNCHER_MODULES
     from world_server.scenarios import params_from_dict
 
     warm_numba_caches(params_from_dict({"scenario": "left_turn", "vehicles": 10}))

@@ -49,7 +49,8 @@ from pathlib import Path
 from channel_proxy.loss import PrrModel
 from channel_proxy.profiles import ChannelProfile
 from processes.manager import has_argument
-from deploy.experiments.sweep import _last_json, append_record, clean_after_launcher, stop_launcher
+from deploy.experiments.plan import _last_json, append_record
+from deploy.experiments.runner import clean_after_launcher, stop_launcher
 from protocol import faults, shm
 
 # The loss profiles a run draws from (``--channel-profile bench.soak:NAME``): LTE-Direct's

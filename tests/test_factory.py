@@ -26,7 +26,7 @@ from processes import factory as process_factory
 from processes import manager as procs
 from processes.factory import Factory, FactoryError, ForkedProcess
 from processes.manager import ProcessManager, has_argument
-from deploy.experiments.sweep import kill_run_processes
+from deploy.experiments.runner import kill_run_processes
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command

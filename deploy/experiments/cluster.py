@@ -1,7 +1,7 @@
 """``autocast sweep --cluster tcp://HOST:8786``: a sweep's runs as tasks on Dask workers.
 
 The client (the machine that runs ``autocast sweep``) plans the sweep as usual
-(``deploy/experiments/sweep.py``) and submits each run still to do as one Dask task, asking for
+(``deploy/experiments/plan.py``) and submits each run still to do as one Dask task, asking for
 as many units of the workers' ``vehicles`` resource as the run has connected
 vehicles: a worker started with ``--resources "vehicles=40"`` holds runs of at most
 40 vehicles at once. On the worker the task starts the same ``autocast run ... --json``
@@ -14,7 +14,7 @@ stops a run's processes as Ctrl-C does, then SIGKILL). Without a zygote
 (``AUTOCAST_FACTORY=popen``) the launcher is a new interpreter under this module's
 ``launch`` wrapper, which asks the kernel for SIGINT when the worker dies
 (``PR_SET_PDEATHSIG``). The task returns the run's record, built on the worker
-(``sweep.record_of``: the outcome's scalars, or the failure and stderr tail) with
+(``plan.record_of``: the outcome's scalars, or the failure and stderr tail) with
 the launcher's stdout and stderr; the client appends each record to
 ``results.jsonl`` as it arrives and writes the logs under ``logs/``, so resume,
 ``--retry-failed``, the progress line and ``autocast report`` see what a local sweep
@@ -58,11 +58,12 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from deploy.experiments.plan import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, STDERR_TAIL_CHARS, RunKey, SweepError, SweepSpec,
+                                      append_record, estimate_run_s, read_results, record_of)
+from deploy.experiments.runner import (LAUNCHER_GRACE_S, LAUNCHER_MODULES, LAUNCHER_SLACK_S, Job, Progress, Sweep,
+                                        _signal_group, finish_sweep, git_revision, kill_run_processes, launcher_args,
+                                        limit_mcap)
 from processes import factory as process_factory
-from deploy.experiments.sweep import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, LAUNCHER_GRACE_S, LAUNCHER_MODULES,
-                          LAUNCHER_SLACK_S, STDERR_TAIL_CHARS, Job, Progress, RunKey, Sweep, SweepError, SweepSpec,
-                          _signal_group, append_record, estimate_run_s, finish_sweep, git_revision,
-                          kill_run_processes, launcher_args, limit_mcap, read_results, record_of)
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -257,7 +258,7 @@ def _stop_flag(client: Client, token: str) -> str | None:
 def _stop_launcher(job: Job, runs_dir: Path, kill_now: Callable[[], bool]) -> None:
     """SIGINT to the launcher's group (it stops its processes in order), up to
     ``LAUNCHER_GRACE_S`` or until ``kill_now()``; then SIGKILL, and the processes it
-    listed that still carry its run id (``sweep.kill_run_processes``)."""
+    listed that still carry its run id (``runner.kill_run_processes``)."""
     _signal_group(job.proc.pid, signal.SIGINT)
     deadline = time.monotonic() + LAUNCHER_GRACE_S
     while not job.exited() and time.monotonic() < deadline:

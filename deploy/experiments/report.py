@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from deploy.experiments.sweep import PLAN, RESULTS, latest, read_results
+from deploy.experiments.plan import PLAN, RESULTS, latest, read_results
 
 log = logging.getLogger("deploy.experiments.report")
 

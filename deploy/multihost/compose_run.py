@@ -46,7 +46,7 @@ from deploy.launch import run
 
 log = logging.getLogger("deploy.multihost.compose_run")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 IMAGE = "autocast-py"
 OFFICIAL_BASE = "python:3.11-slim"
 DEBIAN_BASE = "autocast-base:bookworm"

@@ -46,7 +46,7 @@ from protocol.session import ZenohArgs, session_scope
 
 log = logging.getLogger("deploy.multihost.hosts")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 LOCAL_PREFIX = ("sh", "-c")  # this machine
 DEFAULT_PORT = 7447
 ROLES = (table.WORLD, table.PROXY, table.RECORDER)

@@ -139,7 +139,7 @@ class Lab:
             agents[hosts[2].name] = 2
             agents[hosts[-1].name] = "rest"
         lines = ["# written by deploy.multihost.netns: one host per network namespace", "",
-                 "[defaults]", f"port = {port}", f"workdir = {_q(str(Path(__file__).resolve().parents[1]))}",
+                 "[defaults]", f"port = {port}", f"workdir = {_q(str(Path(__file__).resolve().parents[2]))}",
                  f"python = {_q(sys.executable)}", "warm_up = false", ""]
         roles = {hosts[0].name: ["world", "recorder"], hosts[1].name: ["proxy"]}
         for h in hosts:

@@ -25,6 +25,7 @@ from pathlib import Path
 from types import ModuleType
 
 from deploy.record import recorder
+from protocol.codec import peek_envelope
 
 
 def load_recorder(tree: Path) -> ModuleType:
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scans", action="store_true", help="keep the LiDAR scans in the replay")
     args = ap.parse_args(argv)
     items = raw_messages(args.mcap, args.scans)
-    ticks = len({t for _, p, _ in items if (t := recorder.peek_envelope(p)) is not None and t.cls.__name__ == "Tick"})
+    ticks = len({t for _, p, _ in items if (t := peek_envelope(p)) is not None and t.cls.__name__ == "Tick"})
     ticks = max(ticks, 1)
     trees = {"this": recorder, "against": load_recorder(args.against.resolve())}
     cpu: dict[tuple[str, bool], list[float]] = {}

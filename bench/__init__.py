@@ -1,4 +1,5 @@
-"""Benchmarks: scripts that print figures (``autocast bench NAME [--quick]``).
+"""Benchmarks: scripts that print figures (``autocast bench NAME [--quick]``), and the hostile
+peer (``python -m bench.hostile``) that attacks a run with the fuzz bench's payloads.
 
 Every bench ends with one headline line, ``NAME: key=value key=value ...`` (medians).
 ``HEADLINE_KEYS`` is what each prints: README.md lists these keys, docs/performance.md

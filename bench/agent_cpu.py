@@ -3,7 +3,7 @@ any two versions of the code compare the same way (back to back).
 
 The agents' own exit figures (``proc_cpu``, what ``autocast bench pipeline`` reports)
 exist only in versions that print them. This bench reads every agent process's user +
-system CPU (its CPU-time clock: ``deploy.procs.process_cpu_s``) twice, ``--window`` seconds apart, starting
+system CPU (its CPU-time clock: ``processes.manager.process_cpu_s``) twice, ``--window`` seconds apart, starting
 ``--settle`` seconds after the world's first tick (its log line ``N of N agents up;
 starting``), and divides by the ticks in that window (the window times the run's
 lock-step real-time factor over 0.1 s). The run: ``autocast run --scenario left_turn
@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy.procs import has_argument, process_cpu_s
+from processes.manager import has_argument, process_cpu_s
 
 HERE = Path(__file__).resolve().parent.parent  # this checkout
 UP_LINE = "agents up; starting"

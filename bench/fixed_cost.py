@@ -7,12 +7,12 @@ tick plus the ticks' wall time the world reports) to the launcher's exit; CPU is
 whole run's (the launcher and every process it started, reaped: ``wait4``), and the
 part of it spent before the first tick and after the world printed its outcome
 (each of the run's processes' CPU-time clock and its reaped children's, sampled at
-those two log lines: ``deploy.procs.process_cpu_s``). Two ways to launch:
+those two log lines: ``processes.manager.process_cpu_s``). Two ways to launch:
 
 - ``cold``: ``autocast run`` as a user types it, a new interpreter that imports the
   stack and warms the numba caches before it starts anything;
 - ``warm``: the launcher forked from a parent that has done both already, as
-  ``autocast sweep`` starts each of its runs (``deploy/factory.py``).
+  ``autocast sweep`` starts each of its runs (``processes/factory.py``).
 
 ``AUTOCAST_FACTORY=popen`` in the environment starts every process with Popen instead
 (and makes ``warm`` the same as ``cold`` without the warm-up): the A/B comparison.
@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from deploy.procs import process_cpu_s
+from processes.manager import process_cpu_s
 
 SIM_S = 0.5
 _UP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) world INFO \d+ of \d+ agents up; starting$", re.M)
@@ -76,7 +76,7 @@ def run_argv(vehicles: int, out: Path, run_id: str, warm: bool) -> list[str]:
 
 def measure(vehicles: int, out: Path, mode: str, pss: bool = False) -> FixedCost:
     """One run; ``warm`` needs an active factory (``warm_parent``) in this process."""
-    from deploy import factory as process_factory
+    from processes import factory as process_factory
 
     run_id = f"fixed-{vehicles}-{mode}-{secrets.token_hex(3)}"
     argv = run_argv(vehicles, out, run_id, warm=mode == "warm")
@@ -177,9 +177,9 @@ def _pss_kib(pid: int) -> int:
 def warm_parent():
     """A context in which ``measure(..., "warm")`` forks its launchers: this process
     imports the stack and warms the numba caches, then makes the factory (as a sweep does)."""
-    from deploy import factory as process_factory
-    from deploy.run import warm_numba_caches
-    from deploy.sweep import LAUNCHER_MODULES
+    from processes import factory as process_factory
+    from deploy.launch.warmup import warm_numba_caches
+    from deploy.experiments.runner import LAUNCHER_MODULES
     from world_server.scenarios import params_from_dict
 
     warm_numba_caches(params_from_dict({"scenario": "left_turn", "vehicles": 10}))

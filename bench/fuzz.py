@@ -44,7 +44,8 @@ import msgpack
 import numpy as np
 
 from protocol import messages  # noqa: F401  (registers every message type)
-from protocol.codec import WIRE_DTYPES, MalformedMessage, _packed_to_wire, array_spec, decode, encode, message_types
+from protocol.codec import (WIRE_DTYPES, MalformedMessage, _packed_to_wire, array_spec, decode, encode, message_types,
+                            peek_envelope)
 from protocol.messages import PUBLIC_KEY_BYTES, SIGNATURE_BYTES, Pose
 from vehicle_agent.payload import ObjectPayload, decode_object, encode_object
 
@@ -415,7 +416,6 @@ def decoder(name: str) -> Callable[[bytes], Any]:
     if name == OBJECT:
         return decode_object
     if name == ENVELOPE:
-        from deploy.recorder import peek_envelope
         return peek_envelope
     cls = _CLASS_OF[name]
     return lambda payload: decode(payload, cls)

@@ -32,7 +32,7 @@ import msgpack
 
 from channel_proxy import proxy as proxy_mod
 from channel_proxy.profiles import get_profile
-from deploy.recorder import read_messages, read_metadata
+from deploy.record.recorder import read_messages, read_metadata
 from protocol.codec import decode
 from protocol.messages import ChannelStats, ControlMsg, DataTx, Tick
 

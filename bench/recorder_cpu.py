@@ -5,7 +5,7 @@
 Replays a recording's raw messages through ``McapLog.write`` (the recorder's whole
 writing path: the envelope, the MCAP records, zstd; with the JSON mirror, decoding and
 JSON too) into memory, with the mirror off and on, alternating this tree's
-``deploy/recorder.py`` with the other tree's (loaded from its file; the rest of the
+``deploy/record/recorder.py`` with the other tree's (loaded from its file; the rest of the
 code is this tree's) round by round: the machine's speed drifts, so only alternating
 rounds compare. Prints ms of CPU (``time.process_time``) per tick, min and median over
 the rounds, and their ratios. LiDAR scans are left out unless ``--scans`` (what
@@ -24,13 +24,16 @@ import time
 from pathlib import Path
 from types import ModuleType
 
-from deploy import recorder
+from deploy.record import recorder
+from protocol.codec import peek_envelope
 
 
 def load_recorder(tree: Path) -> ModuleType:
-    """``deploy/recorder.py`` of ``tree`` as a module of its own."""
+    """The recorder of ``tree`` as a module of its own (``deploy/record/recorder.py``;
+    ``deploy/recorder.py`` in a tree from before ``deploy/`` had packages)."""
     name = "recorder_of_" + "".join(c if c.isalnum() else "_" for c in str(tree))
-    spec = importlib.util.spec_from_file_location(name, tree / "deploy" / "recorder.py")
+    path = tree / "deploy" / "record" / "recorder.py"
+    spec = importlib.util.spec_from_file_location(name, path if path.exists() else tree / "deploy" / "recorder.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
@@ -61,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scans", action="store_true", help="keep the LiDAR scans in the replay")
     args = ap.parse_args(argv)
     items = raw_messages(args.mcap, args.scans)
-    ticks = len({t for _, p, _ in items if (t := recorder.peek_envelope(p)) is not None and t.cls.__name__ == "Tick"})
+    ticks = len({t for _, p, _ in items if (t := peek_envelope(p)) is not None and t.cls.__name__ == "Tick"})
     ticks = max(ticks, 1)
     trees = {"this": recorder, "against": load_recorder(args.against.resolve())}
     cpu: dict[tuple[str, bool], list[float]] = {}

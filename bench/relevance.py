@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.load import EGO, MATCH_M  # how a run's collider object is found: the same as the load's
+from deploy.experiments.load import EGO, MATCH_M  # how a run's collider object is found: the same as the load's
 
 log = logging.getLogger(__name__)
 

@@ -36,6 +36,7 @@ from vehicle_agent.scheduler import (
     link_probabilities,
     mdp_optimal,
 )
+from vehicle_agent.scheduler.warmup import warm_up
 
 
 ARM_LENGTH_M = 90.0
@@ -205,17 +206,6 @@ def run_all(inst: Instance, state: SchedulerState, repeats: int, algorithms: tup
         sent_bytes = sum(int(inst.size_bytes[list(f)].sum()) for f in schedule.frames if f)
         out[name] = Run(expected_reward(inst, schedule), ms, sent_bytes, len(schedule.sent()))
     return out
-
-
-def warm_up() -> None:
-    """Compile (or load from cache) every numba kernel before anything is timed."""
-    inst = intersection_instance(np.random.default_rng(0), 5, objects_per_vehicle=3, n_frames=2)
-    state = SchedulerState()
-    for name in ALGORITHMS:
-        try:
-            state = state.advance(inst, get(name)(inst, state))
-        except InstanceTooLarge:
-            pass
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:

@@ -12,7 +12,7 @@ hub, which is the launcher), what happens to it (``kill``: SIGKILL; ``hang``: it
 alive and silent; ``stop``: SIGSTOP, nobody continues it) and at which tick
 (``protocol.faults``). Each run is ``autocast run ... --json`` in its own process
 group, as ``autocast sweep`` starts it, stopped and cleaned up as the sweep does if it
-outlives ``--timeout-s`` plus a slack (``deploy.sweep.Sweep._terminate``), and as the
+outlives ``--timeout-s`` plus a slack (``deploy.experiments.sweep.Sweep._terminate``), and as the
 sweep cleans up after a launcher killed under it.
 
 After each run it records, in ``results.jsonl`` (one line per run, fsynced): the
@@ -48,8 +48,9 @@ from pathlib import Path
 
 from channel_proxy.loss import PrrModel
 from channel_proxy.profiles import ChannelProfile
-from deploy.procs import has_argument
-from deploy.sweep import _last_json, append_record, clean_after_launcher, stop_launcher
+from processes.manager import has_argument
+from deploy.experiments.plan import _last_json, append_record
+from deploy.experiments.runner import clean_after_launcher, stop_launcher
 from protocol import faults, shm
 
 # The loss profiles a run draws from (``--channel-profile bench.soak:NAME``): LTE-Direct's
@@ -285,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)  # a killed launcher's orphans come to us, not to init
     if not args.no_warm_up:
-        from deploy.run import warm_numba_caches
+        from deploy.launch.warmup import warm_numba_caches
         from world_server.scenarios import params_from_dict
 
         for scenario in SCENARIOS:  # what every run then skips (--no-warm-up), as a sweep does

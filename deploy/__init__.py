@@ -1,11 +1,3 @@
-"""Launcher: the table of processes, starting/stopping them, the autocast CLI."""
+"""The ``autocast`` command and what it runs: one run, a run over hosts, its log, sweeps of runs."""
 
-import os
-
-# One BLAS thread per process, set before anything loads numpy: a run is tens of
-# processes on a few cores, and OpenBLAS's idle worker threads spin after each call
-# (the proxy's one matrix product per interval burnt ~50 ms of CPU per tick at 40
-# vehicles in them). Every process of a run is forked from, or started by, this
-# package's launcher, and inherits it; a value the user set is kept.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import processes  # noqa: F401  (one BLAS thread per process, before anything loads numpy)

@@ -30,8 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
-from deploy import view  # noqa: E402
-from deploy.runlog import LogStats, iter_log, read_prelude, received_world, scan_points  # noqa: E402
+from deploy.record import view  # noqa: E402
+from deploy.record.runlog import LogStats, iter_log, read_prelude, received_world, scan_points  # noqa: E402
 from protocol.messages import DataBundle, LidarConfig, Scan, WorldTruth  # noqa: E402
 from vehicle_agent.frames import sensor_to_world  # noqa: E402
 

@@ -27,7 +27,10 @@ packed array's masks hold a bit per entry, so each mask byte brought builds 8 en
 from __future__ import annotations
 
 import dataclasses
+import functools
+import io
 import math
+import struct
 import threading
 import types
 import typing
@@ -283,6 +286,84 @@ def message_types() -> tuple[type, ...]:
 def message_class(type_id: int) -> type | None:
     """The registered message dataclass of a wire type id (None if unknown)."""
     return _REGISTRY.get(type_id)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Envelope:
+    """The head of a message: its class and timing, read without decoding the rest."""
+
+    cls: type
+    tick: int
+    t_sim_s: float
+
+
+def peek_envelope(payload: bytes) -> Envelope | None:
+    """The type, tick and sim time at the head of a message; ``None`` if it is no valid envelope.
+
+    Reads a few dozen bytes whatever the payload's size. The head as the codec packs it
+    (an array of up to 65535 items, the type id and version as one byte each, the tick
+    as an unsigned int, the time as a float64) is read straight from the bytes; any
+    other form through msgpack.
+    """
+    head = _fast_head(payload)
+    if head is not None:
+        n, type_id, version, tick, t_sim_s = head
+        cls = message_class(type_id)
+        if cls is None or version != cls.VERSION or n != 2 + _field_count(cls):
+            return None
+        return Envelope(cls, tick, t_sim_s)
+    unpacker = msgpack.Unpacker(io.BytesIO(payload), read_size=64, raw=False, strict_map_key=False)
+    try:
+        n = unpacker.read_array_header()
+        type_id, version, tick, t_sim_s = (unpacker.unpack() for _ in range(4))
+    except Exception:  # msgpack raises several unrelated exception types
+        return None
+    cls = message_class(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
+    if cls is None or version != cls.VERSION or n != 2 + len(dataclasses.fields(cls)):
+        return None
+    if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
+        return None
+    return Envelope(cls, tick, float(t_sim_s))
+
+
+_UINT_AFTER = {0xcc: struct.Struct(">B"), 0xcd: struct.Struct(">H"), 0xce: struct.Struct(">I"),
+               0xcf: struct.Struct(">Q")}  # msgpack's unsigned ints by their head byte
+_FLOAT64 = struct.Struct(">d")
+
+
+def _fast_head(payload: bytes) -> tuple[int, int, int, int, float] | None:
+    """(item count, type id, version, tick, t_sim_s) of a payload whose head has the
+    codec's usual form (``peek_envelope``), else None: the same values msgpack reads."""
+    size = len(payload)
+    if size < 12:
+        return None
+    first = payload[0]
+    if 0x90 <= first <= 0x9f:  # fixarray
+        n, at = first & 0x0f, 1
+    elif first == 0xdc:  # array 16
+        n, at = (payload[1] << 8) | payload[2], 3
+    else:
+        return None
+    type_id, version, kind = payload[at], payload[at + 1], payload[at + 2]
+    if type_id >= 0x80 or version >= 0x80:  # positive fixints only
+        return None
+    at += 3
+    if kind < 0x80:
+        tick = kind
+    else:
+        uint = _UINT_AFTER.get(kind)
+        if uint is None or at + uint.size + 9 > size:
+            return None
+        (tick,) = uint.unpack_from(payload, at)
+        at += uint.size
+    if at + 9 > size or payload[at] != 0xcb:
+        return None
+    return n, type_id, version, tick, _FLOAT64.unpack_from(payload, at + 1)[0]
+
+
+@functools.cache
+def _field_count(cls: type) -> int:
+    return len(dataclasses.fields(cls))
 
 
 def _hints(cls) -> list[tuple[str, Any]]:

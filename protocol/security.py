@@ -204,7 +204,7 @@ class Rejections:
 
     def exit_line(self, process: str) -> str:
         """``rejected {"process": ..., "total": ..., "by_reason": ..., "by_stream": ...}``,
-        gathered by the launcher into the outcome record (``deploy.procs.exit_records``)."""
+        gathered by the launcher into the outcome record (``processes.manager.exit_records``)."""
         return f"{REJECTED_LINE} " + json.dumps({"process": process, **self.summary()})
 
 

@@ -169,7 +169,7 @@ class DropCounter:
     def exit_line(self, process: str) -> str:
         """What a process prints (stderr, so its log) as it exits:
         ``malformed_dropped {"process": ..., "total": n, "by_key": {key: n}}``; the
-        launcher gathers these lines into the outcome record (``deploy.procs.exit_records``)."""
+        launcher gathers these lines into the outcome record (``processes.manager.exit_records``)."""
         by_key = self.by_key()
         return f"{self.tag} " + json.dumps({"process": process, "total": sum(by_key.values()), "by_key": by_key})
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, Phase, settings
 
-from deploy.run import WARM_ARGV
+from deploy.launch.warmup import WARM_ARGV
 
 # Property tests run the bounded, derandomized "ci" profile (the same examples every
 # run, no per-example deadline on a loaded machine); AUTOCAST_HYPOTHESIS=fuzz runs
@@ -111,8 +111,8 @@ def procs():
 
 def reports_slices() -> bool:
     """Whether this kernel gives a thread a time slice of its own and reports it (Linux
-    6.12 and later), through ``deploy.procs``' ``sched_getattr`` for this machine."""
-    from deploy import procs
+    6.12 and later), through ``processes.manager``' ``sched_getattr`` for this machine."""
+    from processes import manager as procs
 
     release = re.match(r"(\d+)\.(\d+)", os.uname().release) if hasattr(os, "uname") else None
     return procs._SCHED_GETATTR is not None and release is not None and \

@@ -51,7 +51,7 @@ def zenoh_client(endpoint: str, run: str, vid: int) -> int:
 
 
 def owner(n: int) -> int:
-    from deploy.factory import Factory
+    from processes.factory import Factory
 
     factory = Factory(preload=("factory_probe",))
     children = [factory.spawn("factory_probe", ["wait"]) for _ in range(n)]

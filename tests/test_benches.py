@@ -70,6 +70,13 @@ def test_the_readme_documents_every_headline_key():
         assert tuple(k.removesuffix("=...") for k in documented[name].split()) == keys, name
 
 
+def test_the_autocast_command_names_every_bench():
+    """``autocast --help`` lists the benches without importing them: the same names."""
+    from deploy.cli import BENCHES
+
+    assert BENCHES == tuple(HEADLINE_KEYS)
+
+
 def test_the_phase_marks_of_a_run_are_ordered_as_its_messages(tmp_path):
     """``bench.critical_path``'s run: every process marks every phase of every tick it
     plays (a mark before a send, one after the receive), so each receive comes after the

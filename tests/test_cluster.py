@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy import cluster, report, sweep
-from deploy.sweep import RunKey
+from deploy.experiments import cluster, plan, report
+from deploy.experiments.plan import RunKey
 from tests.conftest import free_port, wait_until
 from tests.test_sweep import autocast, leftovers, lines
 
@@ -208,7 +208,7 @@ def test_a_worker_killed_mid_run_gets_its_run_retried_once_elsewhere(tmp_path, d
     f = plan_file(tmp_path, ["left_turn"], ["single", "autocast"], agent_timeout_s=600)
     out, shared = tmp_path / "sw", tmp_path / "shared"
     proc = sweep_proc("--file", str(f), "--out", str(out), "--cluster", dask_cluster.address, "--runs-dir", str(shared))
-    first = sweep.expand(sweep.spec_from(sweep.load_file(f)[0], "plan"))[0].name
+    first = plan.expand(plan.spec_from(plan.load_file(f)[0], "plan"))[0].name
     try:
         wait_until(lambda: (shared / first / "pids.json").exists() or proc.poll() is not None, "the run started on A",
                    timeout_s=240)

@@ -1,5 +1,5 @@
 """docker compose: the file ``autocast deploy --compose`` writes, checked by docker compose
-itself, and the end-to-end run in containers (``deploy.compose_run``).
+itself, and the end-to-end run in containers (``deploy.multihost.compose_run``).
 
 The end-to-end run builds an image and starts 17 containers; it takes minutes (the
 figures are in docs/multihost.md), so it runs only with ``AUTOCAST_COMPOSE_TEST=1``.
@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy import compose_launcher, compose_run, hosts, run, table
+from deploy.multihost import compose_launcher, compose_run, hosts
+from deploy.launch import run, table
 from protocol.messages import Outcome
 
 REPO = Path(__file__).resolve().parents[1]
@@ -114,7 +115,7 @@ def test_the_local_hosts_place_every_process(tmp_path):
 @pytest.mark.parametrize("scheme", ["single", "autocast"])
 def test_a_run_in_containers_is_judged_as_on_one_host(tmp_path, scheme):
     flags = ["--scenario", "left_turn", "--vehicles", "10", "--seed", "0", "--scheme", scheme]
-    res = subprocess.run([sys.executable, "-m", "deploy.compose_run", *flags, "--out", str(tmp_path)],
+    res = subprocess.run([sys.executable, "-m", "deploy.multihost.compose_run", *flags, "--out", str(tmp_path)],
                          capture_output=True, text=True, cwd=REPO, timeout=3600)
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["problems"] == [] and summary["same_as_one_host"] is True, res.stdout

@@ -1,4 +1,4 @@
-"""The warm process factory (deploy/factory.py) with real processes: what a forked child
+"""The warm process factory (processes/factory.py) with real processes: what a forked child
 is (its own pid, group, session, log, command line), the exit codes its owner sees
 (Popen's, compared with Popen itself), killing one child alone, a child's own Zenoh
 session, and nothing left behind when the owner dies.
@@ -22,11 +22,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from deploy import factory as process_factory
-from deploy import procs
-from deploy.factory import Factory, FactoryError, ForkedProcess
-from deploy.procs import ProcessManager, has_argument
-from deploy.sweep import kill_run_processes
+from processes import factory as process_factory
+from processes import manager as procs
+from processes.factory import Factory, FactoryError, ForkedProcess
+from processes.manager import ProcessManager, has_argument
+from deploy.experiments.runner import kill_run_processes
 from protocol import keys
 from protocol.codec import decode
 from protocol.messages import Command
@@ -255,7 +255,7 @@ def test_batch_scheduling_covers_every_thread_and_what_starts_later_and_is_undon
     the default policy and the default slice."""
     script = """
 import json, os, subprocess, sys, threading
-from deploy.procs import batch_scheduling, scheduling
+from processes.manager import batch_scheduling, scheduling
 os.nice(3)  # a niced launcher stays as nice
 go, back, seen = threading.Event(), threading.Event(), {}
 def early():
@@ -269,7 +269,7 @@ before = scheduling()
 assert batch_scheduling(slice_ms=7.5)
 late = threading.Thread(target=lambda: seen.__setitem__("late", scheduling())); late.start(); late.join()
 go.set()
-child = subprocess.run([sys.executable, "-c", "from deploy.procs import scheduling; print(list(scheduling()))"],
+child = subprocess.run([sys.executable, "-c", "from processes.manager import scheduling; print(list(scheduling()))"],
                        capture_output=True, text=True, check=True).stdout
 after = scheduling()
 while "early" not in seen: go.wait(0.01)

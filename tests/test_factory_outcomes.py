@@ -19,7 +19,7 @@ import pytest
 from vehicle_agent.__main__ import SCHEMES
 from world_server.scenarios import SCENARIOS
 
-# differ between identical runs; the CPU figures come with forked runs only (deploy.procs.RunCpu)
+# differ between identical runs; the CPU figures come with forked runs only (processes.manager.RunCpu)
 UNSTABLE = ("run_id", "wall_s", "realtime_factor", "run_dir", "mcap", "malformed", "cpu_ms_per_tick", "cores")
 RUNS = list(zip(itertools.cycle(SCENARIOS), SCHEMES))  # every scheme, every scenario
 

@@ -1,6 +1,6 @@
 """A hostile peer on a run's hub: thousands of malformed and wrong-typed payloads on
 every data key, and forgeries of a compromised vehicle (vehicle 1's own credentials)
-and of a stranger (deploy/hostile.py ``Forger``): commands and reports in the ego's
+and of a stranger (bench/hostile.py ``Forger``): commands and reports in the ego's
 name, control messages in its name claiming a phantom object of the highest reward,
 forged object payloads, replays of earlier genuine messages. A real signed run
 (launcher, recorder, world, proxy, agents as processes) plays out in lock-step. The
@@ -27,11 +27,12 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from deploy import table
-from deploy.hostile import KEY_TYPES, NOT_DATA, key_functions
-from deploy.procs import ProcSpec
-from deploy.recorder import EGO_VID, McapLog, subscriptions
-from deploy.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare, warm_numba_caches
+from deploy.launch import table
+from bench.hostile import KEY_TYPES, NOT_DATA, key_functions
+from processes.manager import ProcSpec
+from deploy.record.recorder import EGO_VID, McapLog, subscriptions
+from deploy.launch.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare
+from deploy.launch.warmup import warm_numba_caches
 from protocol import keys, shm
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import ChannelStats, CtrlBundle, DataBundle, Outcome, Rejected, Tick
@@ -63,7 +64,7 @@ def _run(out: Path, run_id: str, hostile: bool, via_shm: bool = True) -> tuple[R
         specs = table.processes(cfg)
         if hostile:
             vids = [str(v) for v in table.connected_vids(cfg.params)]
-            specs.append(ProcSpec("hostile", "deploy.hostile", (
+            specs.append(ProcSpec("hostile", "bench.hostile", (
                 "--run-id", run_id, "--connect", endpoint, "--vids", *vids, "--proxy", "--forge", "--insider",
                 str(table.v2x_credentials_path(cfg, INSIDER)), "--victim", str(VICTIM), "--name", "hostile",
                 "--late-s", LATE_S)))

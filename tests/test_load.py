@@ -1,4 +1,4 @@
-"""``deploy.load``: offered load, share sent and the collider's delivery to the ego, per
+"""``deploy.experiments.load``: offered load, share sent and the collider's delivery to the ego, per
 interval, on small MCAPs written with the recorder's own writer, answers derived by hand."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from deploy import load
-from deploy.recorder import McapLog
+from deploy.experiments import load
+from deploy.record.recorder import McapLog
 from protocol import keys
 from protocol.codec import encode
 from protocol.messages import (ChannelStats, ControlMsg, DataBundle, EmpBundle, EmpSegment, EmpUpload, ObjectMap, Pose,
@@ -143,7 +143,7 @@ def test_unreadable_messages_are_left_out_and_counted(tmp_path, caplog):
             log.write(key, encode(msg), i)
         log.write(keys.net_ctrl_tx(RUN, 2), b"\xc1 not msgpack", 99)
         log.finish()
-    with caplog.at_level("WARNING", logger="deploy.load"):
+    with caplog.at_level("WARNING", logger="deploy.experiments.load"):
         rows = load.interval_load(path)
     assert [r.bytes_offered for r in rows] == [72_000, 108_000, 72_000]
     assert any("1 messages unreadable" in r.getMessage() for r in caplog.records)

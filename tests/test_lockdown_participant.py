@@ -10,10 +10,10 @@ from dataclasses import replace
 
 import pytest
 
-from deploy import credentials, table
-from deploy.procs import ProcSpec
-from deploy.recorder import read_messages
-from deploy.run import Launcher, open_hub, options_from, parse_args, prepare
+from deploy.launch import credentials, table
+from processes.manager import ProcSpec
+from deploy.record.recorder import read_messages
+from deploy.launch.run import Launcher, open_hub, options_from, parse_args, prepare
 from protocol import keys, shm
 from protocol.codec import decode
 from protocol.messages import Command

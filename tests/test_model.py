@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deploy import table
-from deploy.run import InputError, options_from, parse_args
+from deploy.launch import table
+from deploy.launch.run import InputError, options_from, parse_args
 from protocol.messages import Pose
 from protocol.model import OURS, PAPER, ModelError, lidar_config, resolve
 from vehicle_agent.__main__ import Pipeline, scheduler_of

@@ -1,7 +1,7 @@
 """Multi-host deployment: the hosts file, placement, the compose file, stopping through a
 prefix, and one real run over network namespaces compared with the same run on one host.
 
-The namespace test builds a private network (``deploy.netns.Lab``: a bridge namespace and
+The namespace test builds a private network (``deploy.multihost.netns.Lab``: a bridge namespace and
 four host namespaces with their own 10.77.0.x addresses, nothing in the root namespace),
 runs ``autocast deploy`` inside the first namespace with world and recorder there, the
 channel proxy in the second and the agents in the third and fourth, each namespace with
@@ -25,10 +25,11 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from deploy import credentials, hosts, netns, table
-from deploy.hosts import Host, HostProcessManager, HostsFile, load_hosts, parse_hosts, place
-from deploy.procs import ProcSpec
-from deploy.run import InputError, LaunchOptions, options_from, build_parser
+from deploy.launch import credentials, table
+from deploy.multihost import hosts, netns
+from deploy.multihost.hosts import Host, HostProcessManager, HostsFile, load_hosts, parse_hosts, place
+from processes.manager import ProcSpec
+from deploy.launch.run import InputError, LaunchOptions, options_from, build_parser
 from protocol import keys
 from tests.conftest import wait_until
 
@@ -74,7 +75,7 @@ def test_each_process_connects_to_its_own_hosts_router(tmp_path):
 def test_a_command_runs_the_process_in_the_hosts_checkout_through_its_prefix():
     h = Host("b", "10.0.0.2", prefix=("ssh", "u@b"), workdir="/opt/a c", python="/opt/py", env=(("K", "v w"),))
     argv = hosts.command(h, ProcSpec("proxy", "channel_proxy", ("--seed", "3")))
-    assert argv == ["ssh", "u@b", "cd '/opt/a c' && exec env PYTHONUNBUFFERED=1 'K=v w' /opt/py -m deploy.remote exec "
+    assert argv == ["ssh", "u@b", "cd '/opt/a c' && exec env PYTHONUNBUFFERED=1 'K=v w' /opt/py -m deploy.multihost.remote exec "
                                   "channel_proxy --seed 3"]
 
 
@@ -167,7 +168,7 @@ def test_the_compose_file_has_a_service_per_process_and_a_router_per_host(tmp_pa
     assert sorted(procs) == sorted(["launcher", "recorder", "world", "proxy"] + [f"agent{v}" for v in range(5)])
     for name, h in routers.items():
         cmd = services[name]["command"]
-        assert cmd[:3] == ["python", "-m", "deploy.router"] and f"tcp/0.0.0.0:{h.port}" in cmd
+        assert cmd[:3] == ["python", "-m", "deploy.multihost.router"] and f"tcp/0.0.0.0:{h.port}" in cmd
         earlier = [o for o in hf.hosts[:hf.hosts.index(h)]]
         assert [cmd[i + 1] for i, w in enumerate(cmd) if w == "--connect"] == [o.tls_endpoint for o in earlier]
         assert services[name]["ports"] == [f"{h.port}:{h.port}", f"{h.port + 1}:{h.port + 1}"]
@@ -234,7 +235,7 @@ def _processes_in(ns: str) -> set[tuple[str, str, str]]:
             argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
         except OSError:
             continue
-        if "-m" in argv and argv[argv.index("-m") + 1] != "deploy.remote":
+        if "-m" in argv and argv[argv.index("-m") + 1] != "deploy.multihost.remote":
             def flag(name: str) -> str:
                 return argv[argv.index(name) + 1] if name in argv else ""
             out.add((argv[argv.index("-m") + 1], flag("--vid"), flag("--listen") or flag("--connect")))
@@ -279,9 +280,9 @@ def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_pat
               "agent2": "h3", "agent3": "h3", "agent4": "h3"}
     assert many["hosts"] == placed
     # Each process ran in its host's namespace, connected to that namespace's own router.
-    expected = {h: {("deploy.router", "", f"tcp/{a}:7447")} for h, a in addresses.items()}
+    expected = {h: {("deploy.multihost.router", "", f"tcp/{a}:7447")} for h, a in addresses.items()}
     expected["h0"].add(("deploy.cli", "", ""))  # the launcher
-    module = {"recorder": "deploy.recorder", "world": "world_server", "proxy": "channel_proxy"}
+    module = {"recorder": "deploy.record.recorder", "world": "world_server", "proxy": "channel_proxy"}
     for name, h in placed.items():
         vid = name[len("agent"):] if name.startswith("agent") else ""
         expected[h].add((module.get(name, "vehicle_agent"), vid, f"tcp/{addresses[h]}:7447"))
@@ -348,7 +349,7 @@ def test_a_hosts_router_killed_mid_run_fails_the_run_and_leaves_nothing(tmp_path
             wait_until(lambda: world_log.exists() and "agents up" in world_log.read_text() or proc.poll() is not None,
                        "the world started ticking", timeout_s=240)
             assert proc.poll() is None, err.read_text()[-3000:]
-            os.kill(_pid_in(lab.hosts[1].ns, "deploy.router"), signal.SIGKILL)
+            os.kill(_pid_in(lab.hosts[1].ns, "deploy.multihost.router"), signal.SIGKILL)
             stdout, _ = proc.communicate(timeout=240)
         finally:
             if proc.poll() is None:

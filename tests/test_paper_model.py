@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from deploy.load import interval_load, load_summary
+from deploy.experiments.load import interval_load, load_summary
 
 
 def paper_run(tmp_path, scheme: str) -> dict:

@@ -14,7 +14,8 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from deploy.recorder import JSON_PREFIX, McapLog, json_schema_of, peek_envelope, subscriptions, to_json
+from deploy.record.recorder import JSON_PREFIX, McapLog, json_schema_of, subscriptions, to_json
+from protocol.codec import peek_envelope
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Command, Outcome, Pose, Scan, Tick
@@ -161,7 +162,7 @@ def recorder(procs, hub, tmp_path, request):
     indirect parametrization."""
     path = tmp_path / "run.mcap"
     h = Hub(hub)
-    p = procs("deploy.recorder", "--run-id", RUN, "--connect", hub, "--out", str(path), "--drain-s", "0.3",
+    p = procs("deploy.record.recorder", "--run-id", RUN, "--connect", hub, "--out", str(path), "--drain-s", "0.3",
               "--meta", "scheme=single", *getattr(request, "param", ()))
     h.wait_subscribed()
     yield p, h, path
@@ -203,7 +204,7 @@ def test_the_recording_ends_once_the_tokens_are_gone_and_the_run_is_quiet():
     ``SETTLE_S``; or the cap."""
     from types import SimpleNamespace
 
-    from deploy.recorder import SETTLE_S, Recorder, RecorderConfig
+    from deploy.record.recorder import SETTLE_S, Recorder, RecorderConfig
 
     rec = Recorder(RecorderConfig(RUN, None, drain_s=2.0), None, None)
     token = lambda kind, vid: SimpleNamespace(kind=kind, key_expr=keys.alive(RUN, vid))  # noqa: E731

@@ -23,9 +23,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bench import fuzz
-from deploy import recorder
-from deploy.recorder import JSON_OMITTED, to_json
+from deploy.record import recorder
+from deploy.record.recorder import JSON_OMITTED, to_json
 
+from protocol import codec
 from protocol.codec import MalformedMessage, decode, encode, message_class
 from protocol.messages import AgentReport, ChannelStats, Command, ControlMsg, ObjectMap, Pose, WorldTruth
 
@@ -175,7 +176,7 @@ def ref_peek_envelope(payload: bytes):
         return None
     if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
         return None
-    return recorder.Envelope(cls, tick, float(t_sim_s))
+    return codec.Envelope(cls, tick, float(t_sim_s))
 
 
 def _same_envelope(a, b) -> bool:
@@ -190,7 +191,7 @@ def _same_envelope(a, b) -> bool:
 def test_peek_envelope_reads_what_msgpack_read(seed):
     rnd = random.Random(seed)
     payload = fuzz.valid_payload(fuzz.ENVELOPE, rnd) if seed % 3 == 0 else fuzz.fuzz_input(fuzz.ENVELOPE, rnd)
-    assert _same_envelope(recorder.peek_envelope(payload), ref_peek_envelope(payload))
+    assert _same_envelope(codec.peek_envelope(payload), ref_peek_envelope(payload))
 
 
 @given(type_id=st.one_of(st.integers(-2**63, 2**64 - 1), st.booleans(), st.floats(), st.none()),
@@ -207,12 +208,12 @@ def test_any_head_peeks_as_msgpack_read_it(type_id, version, tick, t_sim_s, extr
     except OverflowError:  # a float64 beyond float32's range
         return
     for p in (payload, payload[:cut]):
-        assert _same_envelope(recorder.peek_envelope(p), ref_peek_envelope(p))
+        assert _same_envelope(codec.peek_envelope(p), ref_peek_envelope(p))
 
 
 @pytest.mark.parametrize("tick", [0, 127, 128, 255, 256, 65535, 65536, 2**32, 2**64 - 1])
 def test_a_tick_of_every_width_by_hand(tick):
     payload = encode(Command(tick, 0.5, 1, -2.0, 0.1))
-    env = recorder.peek_envelope(payload)
+    env = codec.peek_envelope(payload)
     assert (env.cls, env.tick, env.t_sim_s) == (Command, tick, 0.5)
-    assert recorder._fast_head(payload) == (7, Command.TYPE_ID, Command.VERSION, tick, 0.5)
+    assert codec._fast_head(payload) == (7, Command.TYPE_ID, Command.VERSION, tick, 0.5)

@@ -1,5 +1,5 @@
 """``autocast report``'s offered-load table and plot: by model, scheme and density, from
-each run's MCAP through ``deploy.load``, cached per run. (The report's other tables are
+each run's MCAP through ``deploy.experiments.load``, cached per run. (The report's other tables are
 tested in tests/test_sweep.py.)"""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from deploy import load, report
+from deploy.experiments import load, report
 from tests.test_load import three_intervals, write
 
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from deploy import table
-from deploy.procs import BATCH_SLICE_MS, ProcSpec, scheduling
-from deploy.run import main as run_main
-from deploy.run import Launcher, options_from, parse_args
+from deploy.launch import table
+from processes.manager import BATCH_SLICE_MS, ProcSpec, scheduling
+from deploy.launch.run import main as run_main
+from deploy.launch.run import Launcher, options_from, parse_args
 from protocol.session import ZenohArgs, session_scope
 from tests.conftest import batch_allowed, free_port, reports_slices
 from protocol import keys
@@ -151,7 +151,7 @@ def test_each_agent_reports_the_cpu_time_of_its_stages(scenario_runs):
 
 
 def test_the_outcome_says_what_each_kind_of_process_spent_a_tick(scenario_runs):
-    """``cpu_ms_per_tick`` (deploy.procs.RunCpu): each kind of process of the run, the
+    """``cpu_ms_per_tick`` (processes.manager.RunCpu): each kind of process of the run, the
     agents together, and the whole; the parts add up to the whole."""
     r = scenario_runs("left_turn").result
     cpu = r["cpu_ms_per_tick"]
@@ -237,7 +237,7 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
                       "--agent-timeout-s", "600", faults="agent1:hang@5")
     pids = launch.pids()
     launch.wait_ticking()
-    if batch_allowed():  # a lock-step run: every thread of every process (deploy.procs.batch_scheduling)
+    if batch_allowed():  # a lock-step run: every thread of every process (processes.manager.batch_scheduling)
         want = (os.SCHED_BATCH, round(BATCH_SLICE_MS * 1e6) if reports_slices() else None)
         assert {name: thread_policies(pid) for name, pid in pids.items()} == {name: {want} for name in pids}
         assert thread_policies(launch.proc.pid) == {want}
@@ -253,7 +253,7 @@ def test_ctrl_c_stops_everything_and_finalizes_the_mcap(launches):
 
 
 def thread_policies(pid: int) -> set[tuple[int, int | None]]:
-    """The scheduling policy and slice (``deploy.procs.scheduling``) of each of ``pid``'s
+    """The scheduling policy and slice (``processes.manager.scheduling``) of each of ``pid``'s
     threads (one that ends meanwhile left out)."""
     out = set()
     for tid in os.listdir(f"/proc/{pid}/task"):
@@ -359,7 +359,7 @@ def test_the_launcher_waits_for_the_recorder_not_for_its_own_subscribers(tmp_pat
     hub = f"tcp/127.0.0.1:{free_port()}"
     opts = options_from(parse_args(["--out", str(tmp_path), "--run-id", "r", "--timeout-s", "60"]), hub=hub)
     opts.run.log_dir.mkdir(parents=True)
-    gone = ProcSpec(table.RECORDER, "deploy.recorder", ("--no-such-flag",))  # argparse refuses it: exit 2
+    gone = ProcSpec(table.RECORDER, "deploy.record.recorder", ("--no-such-flag",))  # argparse refuses it: exit 2
     with session_scope(ZenohArgs(listen=(hub,)), wait_s=0.0) as session:
         res = Launcher(opts, session, threading.Event(), specs=[gone]).run()
     assert res.result is None and "the recorder did not come up" in res.failure, res

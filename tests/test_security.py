@@ -15,8 +15,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from channel_proxy.proxy import read_frame
-from deploy import credentials, table
-from deploy.run import build_parser, options_from
+from deploy.launch import credentials, table
+from deploy.launch.run import build_parser, options_from
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import Command, ControlMsg, CtrlBundle, DataTx, ObjectMap, Pose, Reception, Signed

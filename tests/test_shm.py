@@ -17,7 +17,7 @@ from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import Command, InShm, Tick
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
 from protocol.shm import ShmMiss, ShmPublisher, ShmReader, ShmWriter
-from deploy.run import free_endpoint
+from deploy.launch.run import free_endpoint
 
 KEY = "ac/t/v/3/scan"
 

@@ -17,22 +17,22 @@ import pytest
 
 from mcap.reader import make_reader
 
-from deploy import report, sweep
-from deploy.recorder import JSON_PREFIX
-from deploy.sweep import RunKey
+from deploy.experiments import plan, report, runner, sweep
+from deploy.record.recorder import JSON_PREFIX
+from deploy.experiments.plan import RunKey
 from tests.conftest import wait_until
 
 # ---------------------------------------------------------------------------- the matrix
 
 
-def spec(**over) -> sweep.SweepSpec:
-    values = {**sweep.PRESETS["smoke"], **over}
-    return sweep.spec_from(values, "t")
+def spec(**over) -> plan.SweepSpec:
+    values = {**plan.PRESETS["smoke"], **over}
+    return plan.spec_from(values, "t")
 
 
 def test_expand_is_the_product_in_plan_order():
     s = spec(vehicles=[10, 5], schemes=["single", "autocast"], deltas_s=[-1, 1], seeds=[0, 1])
-    keys = sweep.expand(s)
+    keys = plan.expand(s)
     assert len(keys) == 2 * 2 * 2 * 2 == s.size()
     assert len({k.name for k in keys}) == len(keys)
     # seed outermost, densities ascending, the schemes of one configuration next to each other
@@ -42,7 +42,7 @@ def test_expand_is_the_product_in_plan_order():
 
 
 def test_paper_preset_is_the_papers_matrix():
-    s = sweep.spec_from(sweep.PRESETS["paper"], "paper")
+    s = plan.spec_from(plan.PRESETS["paper"], "paper")
     assert s.size() == 3 * 3 * 5 * 4 * 4 == 720
     assert s.schemes == ("single", "agnostic", "emp", "autocast")
     assert s.collider_speeds_kmh == (20.0, 30.0, 40.0) and s.vehicles == (5, 10, 20, 40)
@@ -51,10 +51,10 @@ def test_paper_preset_is_the_papers_matrix():
 def test_each_scenario_runs_for_its_own_time_limit_unless_the_sweep_gives_one():
     """The paper's scenarios keep their authors' timeouts (overtaking 40 s, left turn
     30 s, red light 40 s); ``duration_s`` in a sweep replaces them all."""
-    own = sweep.expand(sweep.spec_from(sweep.PRESETS["paper"], "paper"))
+    own = plan.expand(plan.spec_from(plan.PRESETS["paper"], "paper"))
     assert {(k.scenario, k.duration_s) for k in own} == {("overtaking", 40.0), ("left_turn", 30.0),
                                                          ("red_light", 40.0)}
-    given = sweep.expand(sweep.spec_from({**sweep.PRESETS["smoke"], "duration_s": 12}, "smoke"))
+    given = plan.expand(plan.spec_from({**plan.PRESETS["smoke"], "duration_s": 12}, "smoke"))
     assert {k.duration_s for k in given} == {12.0} and given[0].name.endswith("-t12")
 
 
@@ -68,21 +68,22 @@ def test_run_key_name_is_a_valid_run_id():
 
 
 def test_a_model_other_than_ours_is_in_every_key_and_every_run_s_flags(tmp_path):
-    from deploy.sweep import launcher_args, spec_from
+    from deploy.experiments.plan import spec_from
+    from deploy.experiments.runner import launcher_args
 
-    values = {**sweep.preset_values("smoke"), "model": "paper", "model_settings": {"hold_s": 1.0}}
+    values = {**plan.preset_values("smoke"), "model": "paper", "model_settings": {"hold_s": 1.0}}
     spec = spec_from(values, "smoke")
-    keys = sweep.expand(spec)
+    keys = plan.expand(spec)
     assert {k.model for k in keys} == {"paper+hold_s=1.0"}
     assert keys[0].name.startswith("left_turn-v5-c30-d0-single-s0-t30-mpaper-") and len(keys[0].name.split("-")[-1]) == 8
     argv = launcher_args(spec, keys[0], keys[0].name, tmp_path, warm=True)
     assert argv[argv.index("--model") + 1] == "paper" and argv[argv.index("--model-set") + 1] == "hold_s=1.0"
-    plain = sweep.expand(spec_from(sweep.preset_values("smoke"), "smoke"))
+    plain = plan.expand(spec_from(plan.preset_values("smoke"), "smoke"))
     assert plain[0].name == "left_turn-v5-c30-d0-single-s0-t30" and "--model" in launcher_args(
-        spec_from(sweep.preset_values("smoke"), "smoke"), plain[0], "r", tmp_path, warm=True)
-    with pytest.raises(sweep.SweepError, match="^hold_s:"):
+        spec_from(plan.preset_values("smoke"), "smoke"), plain[0], "r", tmp_path, warm=True)
+    with pytest.raises(plan.SweepError, match="^hold_s:"):
         spec_from({**values, "model_settings": {"hold_s": "x"}}, "smoke")
-    with pytest.raises(sweep.SweepError, match="^model:"):
+    with pytest.raises(plan.SweepError, match="^model:"):
         spec_from({**values, "model": ["paper"]}, "smoke")
 
 
@@ -97,17 +98,17 @@ def test_a_model_other_than_ours_is_in_every_key_and_every_run_s_flags(tmp_path)
     ({"json_mirror": "yes"}, "json_mirror: 'yes' is not true or false"),
 ])
 def test_bad_fields_are_named(over, message):
-    with pytest.raises(sweep.SweepError) as err:
+    with pytest.raises(plan.SweepError) as err:
         spec(**over)
     assert str(err.value).startswith(message)
 
 
 def test_a_sweeps_runs_record_without_the_json_mirror_unless_asked():
-    key = sweep.expand(spec())[0]
-    assert "--no-json-mirror" in sweep.launcher_args(spec(), key, "r", Path("runs"), warm=True)
-    assert "--no-json-mirror" not in sweep.launcher_args(spec(json_mirror=True), key, "r", Path("runs"), warm=True)
+    key = plan.expand(spec())[0]
+    assert "--no-json-mirror" in runner.launcher_args(spec(), key, "r", Path("runs"), warm=True)
+    assert "--no-json-mirror" not in runner.launcher_args(spec(json_mirror=True), key, "r", Path("runs"), warm=True)
     args = sweep.parse_args(["--preset", "smoke", "--json-mirror"])
-    assert sweep.spec_from(sweep.narrowed(sweep.preset_values("smoke"), args), "smoke").json_mirror
+    assert plan.spec_from(plan.narrowed(plan.preset_values("smoke"), args), "smoke").json_mirror
 
 
 def test_duplicates_collapse_and_numbers_coerce():
@@ -141,21 +142,21 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
 
 
 def test_estimate_interpolates_the_measured_model(monkeypatch):
-    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {10: 10.0, 20: 20.0})
-    monkeypatch.setattr(sweep, "MODEL_TICK_S", {10: 0.1, 20: 0.3})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})
+    monkeypatch.setattr(plan, "MODEL_STARTUP_S", {10: 10.0, 20: 20.0})
+    monkeypatch.setattr(plan, "MODEL_TICK_S", {10: 0.1, 20: 0.3})
+    monkeypatch.setattr(plan, "TYPICAL_END_S", {"left_turn": 10.0})
     key = RunKey("left_turn", 15, 30.0, 0.0, "autocast", 0, 20.0)
-    assert sweep.estimate_run_s(key) == pytest.approx(15.0 + 100 * 0.2)  # 10 s of sim = 100 ticks
+    assert plan.estimate_run_s(key) == pytest.approx(15.0 + 100 * 0.2)  # 10 s of sim = 100 ticks
     short = RunKey("left_turn", 30, 30.0, 0.0, "autocast", 0, 5.0)  # beyond the table: linear; 50 ticks
-    assert sweep.estimate_run_s(short) == pytest.approx(30.0 + 50 * 0.5)
+    assert plan.estimate_run_s(short) == pytest.approx(30.0 + 50 * 0.5)
 
 
 def test_estimate_takes_each_scenarios_typical_end(monkeypatch):
-    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {10: 0.0, 20: 0.0})
-    monkeypatch.setattr(sweep, "MODEL_TICK_S", {10: 0.1, 20: 0.1})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"overtaking": 20.0, "red_light": 8.0})
-    monkeypatch.setattr(sweep, "TYPICAL_END_OTHER_S", 12.0)
-    run = lambda scenario, limit: sweep.estimate_run_s(RunKey(scenario, 10, 30.0, 0.0, "autocast", 0, limit))
+    monkeypatch.setattr(plan, "MODEL_STARTUP_S", {10: 0.0, 20: 0.0})
+    monkeypatch.setattr(plan, "MODEL_TICK_S", {10: 0.1, 20: 0.1})
+    monkeypatch.setattr(plan, "TYPICAL_END_S", {"overtaking": 20.0, "red_light": 8.0})
+    monkeypatch.setattr(plan, "TYPICAL_END_OTHER_S", 12.0)
+    run = lambda scenario, limit: plan.estimate_run_s(RunKey(scenario, 10, 30.0, 0.0, "autocast", 0, limit))
     assert run("overtaking", 40.0) == pytest.approx(200 * 0.1)
     assert run("red_light", 40.0) == pytest.approx(80 * 0.1)
     assert run("overtaking", 5.0) == pytest.approx(50 * 0.1)  # never beyond the time limit
@@ -163,8 +164,8 @@ def test_estimate_takes_each_scenarios_typical_end(monkeypatch):
 
 
 def test_the_typical_end_follows_the_collider_speed(monkeypatch):
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": {20: 18.0, 40: 12.0}, "red_light": 9.0})
-    end = lambda scenario, kmh: sweep.typical_end_s(RunKey(scenario, 10, kmh, 0.0, "autocast", 0, 30.0))  # noqa: E731
+    monkeypatch.setattr(plan, "TYPICAL_END_S", {"left_turn": {20: 18.0, 40: 12.0}, "red_light": 9.0})
+    end = lambda scenario, kmh: plan.typical_end_s(RunKey(scenario, 10, kmh, 0.0, "autocast", 0, 30.0))  # noqa: E731
     assert end("left_turn", 20.0) == pytest.approx(18.0)
     assert end("left_turn", 30.0) == pytest.approx(15.0)  # halfway
     assert end("left_turn", 50.0) == pytest.approx(9.0)  # beyond: the same slope
@@ -173,29 +174,29 @@ def test_the_typical_end_follows_the_collider_speed(monkeypatch):
 
 
 def test_estimate_is_rescaled_by_the_runs_already_measured(monkeypatch):
-    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 10: 5.0})
-    monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 10: 0.1})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 5 + 100 x 0.1 = 15 s
+    monkeypatch.setattr(plan, "MODEL_STARTUP_S", {5: 5.0, 10: 5.0})
+    monkeypatch.setattr(plan, "MODEL_TICK_S", {5: 0.1, 10: 0.1})
+    monkeypatch.setattr(plan, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 5 + 100 x 0.1 = 15 s
     key = RunKey("left_turn", 5, 30.0, 0.0, "autocast", 0, 20.0)
     measured = [{"run_key": "x", "status": "judged", "scenario": "left_turn", "vehicles": 5, "collider_speed_kmh": 30.0, "delta_s": 0.0,
                  "scheme": "autocast", "seed": s, "duration_s": 20.0, "wall_total_s": w}
                 for s, w in enumerate((30.0, 45.0, 60.0))]
-    assert sweep.calibration(measured) == (pytest.approx(3.0), 3)  # median of 2x, 3x, 4x
-    assert sweep.calibration(measured[:2]) == (1.0, 2)  # too few to trust
+    assert plan.calibration(measured) == (pytest.approx(3.0), 3)  # median of 2x, 3x, 4x
+    assert plan.calibration(measured[:2]) == (1.0, 2)  # too few to trust
     paired = [dict(r, seed=r["seed"] + 3, wall_total_s=150.0, alone=False) for r in measured]
-    assert sweep.calibration(measured + paired) == (pytest.approx(3.0), 3)  # runs in pairs are not the model's
-    assert sweep.estimate_wall_s([key, key], jobs=1, scale=3.0) == pytest.approx(90.0)
+    assert plan.calibration(measured + paired) == (pytest.approx(3.0), 3)  # runs in pairs are not the model's
+    assert plan.estimate_wall_s([key, key], jobs=1, scale=3.0) == pytest.approx(90.0)
 
 
 def test_with_jobs_runs_that_fit_the_budget_twice_pair_up(monkeypatch):
-    monkeypatch.setattr(sweep, "MODEL_STARTUP_S", {5: 5.0, 40: 5.0})
-    monkeypatch.setattr(sweep, "MODEL_TICK_S", {5: 0.1, 40: 0.1})
-    monkeypatch.setattr(sweep, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 15 s alone
-    monkeypatch.setattr(sweep, "PAIR_GAIN", 1.5)
+    monkeypatch.setattr(plan, "MODEL_STARTUP_S", {5: 5.0, 40: 5.0})
+    monkeypatch.setattr(plan, "MODEL_TICK_S", {5: 0.1, 40: 0.1})
+    monkeypatch.setattr(plan, "TYPICAL_END_S", {"left_turn": 10.0})  # every autocast run: 15 s alone
+    monkeypatch.setattr(plan, "PAIR_GAIN", 1.5)
     small, big = (RunKey("left_turn", n, 30.0, 0.0, "autocast", 0, 20.0) for n in (5, 40))
-    assert sweep.estimate_wall_s([small, big], jobs=1) == pytest.approx(30.0)
-    assert sweep.estimate_wall_s([small, big], jobs=2, vehicle_budget=20) == pytest.approx(10.0 + 15.0)
-    assert sweep.estimate_wall_s([small, big], jobs=2, vehicle_budget=9) == pytest.approx(30.0)  # 5 + 5 > 9
+    assert plan.estimate_wall_s([small, big], jobs=1) == pytest.approx(30.0)
+    assert plan.estimate_wall_s([small, big], jobs=2, vehicle_budget=20) == pytest.approx(10.0 + 15.0)
+    assert plan.estimate_wall_s([small, big], jobs=2, vehicle_budget=9) == pytest.approx(30.0)  # 5 + 5 > 9
 
 
 # ---------------------------------------------------------------------------- records
@@ -208,7 +209,7 @@ def test_record_of_a_judged_run_keeps_scalars_not_the_series():
     outcome = {"outcome": "near_miss", "closest_distance_m": 1.5, "reaction_time_s": None, "scenario": "red_light",
                "vehicles": 5, "distance_series_m": [[0.1 * i, 50.0] for i in range(200)],
                "dead_agents": {str(v): "no command for tick 80 within 10.0 s" for v in range(40)}}
-    rec = sweep.record_of(KEY, KEY.name, 1, "outcome: near_miss ...\n" + json.dumps(outcome) + "\n", "", 12.3)
+    rec = plan.record_of(KEY, KEY.name, 1, "outcome: near_miss ...\n" + json.dumps(outcome) + "\n", "", 12.3)
     assert rec["status"] == "judged" and rec["outcome"] == "near_miss" and rec["exit_code"] == 1
     assert rec["run_key"] == KEY.name and rec["scheme"] == "autocast" and rec["closest_distance_m"] == 1.5
     assert "distance_series_m" not in rec and "error" not in rec
@@ -216,25 +217,25 @@ def test_record_of_a_judged_run_keeps_scalars_not_the_series():
 
 
 def test_record_of_a_failed_run_keeps_its_error():
-    rec = sweep.record_of(KEY, KEY.name, 3, json.dumps({"outcome": None, "failure": "world exited"}) + "\n",
+    rec = plan.record_of(KEY, KEY.name, 3, json.dumps({"outcome": None, "failure": "world exited"}) + "\n",
                           "lots\nof\nstderr", 4.0)
     assert rec["status"] == "failed" and rec["error"]["failure"] == "world exited"
     assert rec["error"]["exit_code"] == 3 and rec["error"]["stderr_tail"].endswith("stderr")
-    crashed = sweep.record_of(KEY, KEY.name, 1, "", "Traceback ...\nZeroDivisionError", 1.0)
+    crashed = plan.record_of(KEY, KEY.name, 1, "", "Traceback ...\nZeroDivisionError", 1.0)
     assert crashed["status"] == "failed" and crashed["outcome"] is None
     assert crashed["error"]["failure"] == "exit code 1 without an outcome"
 
 
 def test_results_survive_a_torn_line_and_the_last_attempt_wins(tmp_path):
     path = tmp_path / "results.jsonl"
-    sweep.append_record(path, {"run_key": "a", "status": "failed"})
-    sweep.append_record(path, {"run_key": "b", "status": "judged"})
-    sweep.append_record(path, {"run_key": "a", "status": "judged"})
+    plan.append_record(path, {"run_key": "a", "status": "failed"})
+    plan.append_record(path, {"run_key": "b", "status": "judged"})
+    plan.append_record(path, {"run_key": "a", "status": "judged"})
     with open(path, "a") as f:
         f.write('{"run_key": "c", "sta')  # killed mid-write
-    recs = sweep.read_results(path)
+    recs = plan.read_results(path)
     assert [r["run_key"] for r in recs] == ["a", "b", "a"]
-    assert {k: r["status"] for k, r in sweep.latest(recs).items()} == {"a": "judged", "b": "judged"}
+    assert {k: r["status"] for k, r in plan.latest(recs).items()} == {"a": "judged", "b": "judged"}
 
 
 # ---------------------------------------------------------------------------- report tables
@@ -430,7 +431,7 @@ def test_the_delay_table_names_the_control_messages_it_cannot_read(tmp_path, cap
     says how many it left; the JSON mirror of a readable one is not counted as unreadable."""
     import msgpack
 
-    from deploy.recorder import McapLog
+    from deploy.record.recorder import McapLog
     from protocol.codec import encode
     from protocol.messages import ChannelStats, ControlMsg, ObjectMap, Pose
 
@@ -449,9 +450,9 @@ def test_the_delay_table_names_the_control_messages_it_cannot_read(tmp_path, cap
         log.write("ac/r/net/ctrl/tx/2", msgpack.packb(old), 2)
         log.write("ac/r/net/stats", encode(stats), 3)
         log.finish()
-    with caplog.at_level("WARNING", logger="deploy.report"):
+    with caplog.at_level("WARNING", logger="deploy.experiments.report"):
         sent = report.schedule_of_run(path)
     assert [(s.sender, s.object_id) for s in sent] == [(1, 7)]  # vehicle 2's object: no readable offer
     assert sent[0].reward == 1.0  # (1 - v) r of its one receiver
-    warnings = [r.getMessage() for r in caplog.records if r.name == "deploy.report"]
+    warnings = [r.getMessage() for r in caplog.records if r.name == "deploy.experiments.report"]
     assert len(warnings) == 1 and "1 control messages unreadable" in warnings[0] and "version" in warnings[0]

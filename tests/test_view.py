@@ -18,10 +18,10 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
 
-from deploy import export
-from deploy.recorder import JSON_ENCODING, JSON_PREFIX, JSON_SCHEMA_ENCODING, McapLog, mirror_file
-from deploy.runlog import DEFAULT_SCAN_POINTS, read_prelude, received_world, scan_points
-from deploy.view import POINT_RADIUS_M, Legend, ViewStats, build, iter_log, legend_for, main
+from deploy.record import export
+from deploy.record.recorder import JSON_ENCODING, JSON_PREFIX, JSON_SCHEMA_ENCODING, McapLog, mirror_file
+from deploy.record.runlog import DEFAULT_SCAN_POINTS, read_prelude, received_world, scan_points
+from deploy.record.view import POINT_RADIUS_M, Legend, ViewStats, build, iter_log, legend_for, main
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import ChannelStats, DataBundle, Reception, Scan, Tick, WorldTruth

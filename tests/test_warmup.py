@@ -14,7 +14,7 @@ from numba.core.dispatcher import Dispatcher
 
 from channel_proxy.emp import voronoi_segment
 from channel_proxy.profiles import get_profile
-from deploy.run import WARM_ARGV
+from deploy.launch.warmup import WARM_ARGV
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, Scan
 from vehicle_agent.agent import Agent

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol import keys
-from protocol.codec import decode, encode
+from protocol.codec import decode, encode, peek_envelope
 from protocol.messages import (ControlMsg, CtrlBundle, DataBundle, DataTx, EmpBundle, EmpUpload, MapMsg, Mission,
                                Pose, Reception, Scan, Transmission)
 from protocol.session import DropCounter
@@ -53,8 +53,6 @@ class Log:
     @staticmethod
     def read(path: Path) -> Log:
         from mcap.reader import make_reader
-
-        from deploy.recorder import peek_envelope
 
         with open(path, "rb") as f:
             reader = make_reader(f)

@@ -15,7 +15,7 @@ import signal
 import sys
 import time
 
-from deploy.procs import ProcessManager, ProcSpec
+from processes.manager import ProcessManager, ProcSpec
 from protocol import keys
 from protocol.model import ModelError, add_model_args, lidar_config, model_from
 from protocol.security import Verifier

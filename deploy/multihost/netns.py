@@ -8,7 +8,7 @@ and the lab's 10.77.0.0/24 is invisible outside it. Names carry a random tag
 (``ac1f2e3d-h0``), so labs never collide; leaving the ``with`` block kills whatever
 still runs in them and deletes them, also after a failure. Needs root.
 
-    sudo python -m deploy.netns [--hosts 4] -- --scenario left_turn --vehicles 5 --scheme autocast
+    sudo python -m deploy.multihost.netns [--hosts 4] -- --scenario left_turn --vehicles 5 --scheme autocast
 
 builds a lab, writes a hosts file that puts the world and the recorder on h0, the
 channel proxy on h1 and the agents on the others (prefix ``ip netns exec <ns> sh -c``,
@@ -138,8 +138,8 @@ class Lab:
         else:
             agents[hosts[2].name] = 2
             agents[hosts[-1].name] = "rest"
-        lines = ["# written by deploy.netns: one host per network namespace", "",
-                 "[defaults]", f"port = {port}", f"workdir = {_q(str(Path(__file__).resolve().parents[1]))}",
+        lines = ["# written by deploy.multihost.netns: one host per network namespace", "",
+                 "[defaults]", f"port = {port}", f"workdir = {_q(str(Path(__file__).resolve().parents[2]))}",
                  f"python = {_q(sys.executable)}", "warm_up = false", ""]
         roles = {hosts[0].name: ["world", "recorder"], hosts[1].name: ["proxy"]}
         for h in hosts:
@@ -171,7 +171,7 @@ def deploy_argv(lab: Lab, hosts_file: Path, flags: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.netns", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.multihost.netns", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hosts", type=int, default=4, help="host namespaces (default 4, at least 2)")
     ap.add_argument("flags", nargs=argparse.REMAINDER, help="-- then autocast deploy's flags")

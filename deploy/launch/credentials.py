@@ -41,7 +41,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-from deploy import table
+from deploy.launch import table
 from protocol import keys
 from protocol.security import Authority
 
@@ -128,7 +128,7 @@ def own_keys(cfg: table.RunConfig, name: str) -> tuple[list[str], list[str]]:
         vid = int(name[len("agent"):])
         return [keys.cmd(run, vid), keys.report(run, vid), keys.rejected(run, vid), keys.net_ctrl_tx(run, vid),
                 keys.net_data_tx(run, vid), keys.net_emp_up(run, vid)], [keys.alive(run, vid)]
-    if name == LAUNCHER:  # its token tells the world that the recorder is up (deploy.compose_launcher)
+    if name == LAUNCHER:  # its token tells the world that the recorder is up (deploy.multihost.compose_launcher)
         return [], [keys.participant_alive(run, LAUNCHER)]
     if name.startswith(PARTICIPANT):  # its token, so the world may start; nothing else
         return [], [keys.participant_alive(run, name[len(PARTICIPANT):])]

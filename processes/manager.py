@@ -1,12 +1,12 @@
 """Starting, watching and stopping the processes of a run (openpilot manager style).
 
-A run is a table of ``ProcSpec`` rows (``deploy/table.py``); the manager only starts
+A run is a table of ``ProcSpec`` rows (``deploy/launch/table.py``); the manager only starts
 what the table says, notices a process that died (the watchdog), and stops everything
 the same way every time: SIGINT, a grace period, then SIGKILL. Each child gets its own
 session (process group), so a Ctrl-C in the terminal reaches the launcher only, which
 then stops children in order instead of all of them at once.
 
-Where a warm process factory is active (``deploy/factory.py``: the launcher makes one
+Where a warm process factory is active (``processes/factory.py``: the launcher makes one
 before it opens its Zenoh hub), a process is forked from it instead of started with
 ``Popen``: the same command line, log, session and exit code, without importing the
 stack and loading the numba kernels again. ``AUTOCAST_FACTORY=popen`` forces Popen.
@@ -30,7 +30,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy import factory as process_factory
+from processes import factory as process_factory
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +236,7 @@ class RunCpu:
 def has_argument(pid: int, word: str) -> bool:
     """Whether ``word`` is one of process ``pid``'s arguments as ``/proc/<pid>/cmdline``
     shows them: one string per argument, or, for a forked child whose arguments do not
-    fit its parent's (``deploy.factory``), one string with spaces between them."""
+    fit its parent's (``processes.factory``), one string with spaces between them."""
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:  # gone
@@ -289,7 +289,7 @@ def batch_scheduling(batch: bool = True, slice_ms: float = BATCH_SLICE_MS) -> bo
         tids = [0]
     done, slice_refused = True, None
     # a thread started meanwhile by one not yet visited keeps its policy: a run calls this
-    # before it starts any (deploy.run)
+    # before it starts any (deploy.launch.run)
     for tid in tids:
         try:
             if batch or os.sched_getscheduler(tid) == os.SCHED_BATCH:

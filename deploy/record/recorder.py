@@ -1,4 +1,4 @@
-"""The run's recorder: ``python -m deploy.recorder --run-id R --out runs/R/run.mcap``.
+"""The run's recorder: ``python -m deploy.record.recorder --run-id R --out runs/R/run.mcap``.
 
 One process subscribed to a run's keys (``ac/<run>/...``) writes one MCAP file:
 a channel per key, message encoding ``msgpack`` (the payload bytes exactly as they
@@ -33,14 +33,12 @@ import argparse
 import dataclasses
 import functools
 import inspect
-import io
 import json
 import logging
 import math
 import os
 import queue
 import signal
-import struct
 import subprocess
 import sys
 import threading
@@ -49,7 +47,6 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import msgpack
 import numpy as np
 import zenoh
 from mcap.reader import NonSeekingReader, make_reader
@@ -57,13 +54,13 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from protocol import keys
-from protocol.codec import MalformedMessage, decode, message_class
+from protocol.codec import MalformedMessage, decode, peek_envelope
 from protocol.faults import Injector
 from protocol import messages
 from protocol.messages import Outcome, Tick
 from protocol.session import ZenohArgs, add_zenoh_args, session_scope, zenoh_args_from
 
-log = logging.getLogger("deploy.recorder")
+log = logging.getLogger("deploy.record.recorder")
 
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "autocast-dataclass"  # JSON: type id, version, field names and types
@@ -97,84 +94,6 @@ class RecorderConfig:
     drain_s: float = DRAIN_S
     hub_lost_s: float = 3.0  # finalize when no hub was connected for this long
     json_mirror: bool = False  # also write every message as JSON on json/<key>
-
-
-@dataclass(frozen=True, slots=True)
-class Envelope:
-    """What the recorder reads of a payload: its message class and timing."""
-
-    cls: type
-    tick: int
-    t_sim_s: float
-
-
-def peek_envelope(payload: bytes) -> Envelope | None:
-    """The type, tick and sim time at the head of a message; ``None`` if it is no valid envelope.
-
-    Reads a few dozen bytes whatever the payload's size. The head as the codec packs it
-    (an array of up to 65535 items, the type id and version as one byte each, the tick
-    as an unsigned int, the time as a float64) is read straight from the bytes; any
-    other form through msgpack.
-    """
-    head = _fast_head(payload)
-    if head is not None:
-        n, type_id, version, tick, t_sim_s = head
-        cls = message_class(type_id)
-        if cls is None or version != cls.VERSION or n != 2 + _field_count(cls):
-            return None
-        return Envelope(cls, tick, t_sim_s)
-    unpacker = msgpack.Unpacker(io.BytesIO(payload), read_size=64, raw=False, strict_map_key=False)
-    try:
-        n = unpacker.read_array_header()
-        type_id, version, tick, t_sim_s = (unpacker.unpack() for _ in range(4))
-    except Exception:  # msgpack raises several unrelated exception types
-        return None
-    cls = message_class(type_id) if isinstance(type_id, int) and not isinstance(type_id, bool) else None
-    if cls is None or version != cls.VERSION or n != 2 + len(dataclasses.fields(cls)):
-        return None
-    if not isinstance(tick, int) or isinstance(t_sim_s, bool) or not isinstance(t_sim_s, (int, float)):
-        return None
-    return Envelope(cls, tick, float(t_sim_s))
-
-
-_UINT_AFTER = {0xcc: struct.Struct(">B"), 0xcd: struct.Struct(">H"), 0xce: struct.Struct(">I"),
-               0xcf: struct.Struct(">Q")}  # msgpack's unsigned ints by their head byte
-_FLOAT64 = struct.Struct(">d")
-
-
-def _fast_head(payload: bytes) -> tuple[int, int, int, int, float] | None:
-    """(item count, type id, version, tick, t_sim_s) of a payload whose head has the
-    codec's usual form (``peek_envelope``), else None: the same values msgpack reads."""
-    size = len(payload)
-    if size < 12:
-        return None
-    first = payload[0]
-    if 0x90 <= first <= 0x9f:  # fixarray
-        n, at = first & 0x0f, 1
-    elif first == 0xdc:  # array 16
-        n, at = (payload[1] << 8) | payload[2], 3
-    else:
-        return None
-    type_id, version, kind = payload[at], payload[at + 1], payload[at + 2]
-    if type_id >= 0x80 or version >= 0x80:  # positive fixints only
-        return None
-    at += 3
-    if kind < 0x80:
-        tick = kind
-    else:
-        uint = _UINT_AFTER.get(kind)
-        if uint is None or at + uint.size + 9 > size:
-            return None
-        (tick,) = uint.unpack_from(payload, at)
-        at += uint.size
-    if at + 9 > size or payload[at] != 0xcb:
-        return None
-    return n, type_id, version, tick, _FLOAT64.unpack_from(payload, at + 1)[0]
-
-
-@functools.cache
-def _field_count(cls: type) -> int:
-    return len(dataclasses.fields(cls))
 
 
 def _is_a(payload: bytes, cls: type) -> bool:
@@ -640,7 +559,7 @@ class Recorder:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m deploy.recorder", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.record.recorder", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-id", required=True, help="the run's id (records ac/<run>/**)")
     ap.add_argument("--out", required=True, type=Path, metavar="FILE", help="the MCAP file to write")

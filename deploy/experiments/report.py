@@ -12,7 +12,7 @@ Writes into ``SWEEP_DIR/report/`` (``--out``):
 - ``scheduled_delay.png``: when each transmitted object arrived in its interval vs its
   reward (paper: "Scheduled delay", 20 vehicles)
 - ``load_vs_density.png``: offered load over the channel's capacity, and the collider's
-  delivery to the ego beside its visibility, vs density (``deploy.load``; each run's
+  delivery to the ego beside its visibility, vs density (``deploy.experiments.load``; each run's
   figures cached in ``SWEEP_DIR/report/load/<run id>.json``)
 - ``summary.md``: the tables, with "safe passage % by scheme x density"
 
@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from deploy.sweep import PLAN, RESULTS, latest, read_results
+from deploy.experiments.plan import PLAN, RESULTS, latest, read_results
 
-log = logging.getLogger("deploy.report")
+log = logging.getLogger("deploy.experiments.report")
 
 OUTCOMES = ("safe", "near_miss", "crash", "deadlock")
 SCHEME_ORDER = ("single", "emp", "agnostic", "autocast", "autocast-fptas", "lane")
@@ -53,7 +53,7 @@ FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "
            "scheduled_delay.png", "load_vs_density.png")
 NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
 DEFAULT_MODEL = "ours"  # a record without a "model" field
-LOAD_CACHE_VERSION = 1  # bump when deploy.load's figures change meaning
+LOAD_CACHE_VERSION = 1  # bump when deploy.experiments.load's figures change meaning
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
 
@@ -154,7 +154,7 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     sender's control message of that interval (``net/ctrl/tx``: the object's v and r).
     Control messages this build cannot read (a log of an earlier message version, say)
     leave their objects out, and the run's count of them is logged as a warning."""
-    from deploy.load import raw_messages
+    from deploy.experiments.load import raw_messages
     from protocol.codec import decode
     from protocol.messages import ChannelStats, ControlMsg
     from protocol.security import opened
@@ -303,7 +303,7 @@ def delay_table(by_scheme: dict[str, tuple[int, list[Sent]]]) -> dict[str, Delay
     return out
 
 
-# ---------------------------------------------------------------------------- offered load (deploy.load)
+# ---------------------------------------------------------------------------- offered load (deploy.experiments.load)
 
 
 def model_of(record: dict[str, Any]) -> str:
@@ -311,9 +311,9 @@ def model_of(record: dict[str, Any]) -> str:
 
 
 def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
-    """``deploy.load.load_summary`` of a run's MCAP, from ``cache`` when it was computed
+    """``deploy.experiments.load.load_summary`` of a run's MCAP, from ``cache`` when it was computed
     from the same file (path, size, mtime) by this version, else computed and cached."""
-    from deploy.load import interval_load, load_summary
+    from deploy.experiments.load import interval_load, load_summary
 
     st = mcap.stat()
     stamp = {"version": LOAD_CACHE_VERSION, "mcap": str(mcap), "mcap_bytes": st.st_size,
@@ -762,7 +762,7 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
                        "; ".join(f"{label} -> {ms:.1f} ({n})" for label, ms, n in d.by_reward)]
                       for s, d in delay.items()])
     lines += ["", "## Offered load and the collider's delivery by scheme x density", "",
-              "From each judged run's MCAP (`python -m deploy.load`): per interval, the bytes of every object in "
+              "From each judged run's MCAP (`python -m deploy.experiments.load`): per interval, the bytes of every object in "
               "the senders' control messages over the data channel's capacity (B N T_n / 8), the share of them "
               "put on the air, and whether the ego decoded a copy of the collider. Load and share sent: median "
               "over runs of each run's median interval; delivery: intervals in which the ego decoded the collider "

@@ -1,6 +1,6 @@
 """Offered load and the collider's delivery, per decision interval of a run's MCAP.
 
-``python -m deploy.load RUN.mcap [--json]`` prints a run's summary and a few of its
+``python -m deploy.experiments.load RUN.mcap [--json]`` prints a run's summary and a few of its
 intervals; ``autocast report`` puts the summaries of a sweep's runs in a table and in
 ``load_vs_density.png`` (docs/experiments.md, "Offered load and the collider's delivery").
 
@@ -82,7 +82,7 @@ def raw_messages(mcap_path: Path, keep: Callable[[str], bool]) -> Iterator[tuple
     order: not the JSON mirror (its payloads are JSON, not messages)."""
     from mcap.reader import make_reader
 
-    from deploy.recorder import JSON_PREFIX
+    from deploy.record.recorder import JSON_PREFIX
 
     with open(mcap_path, "rb") as f:
         reader = make_reader(f)
@@ -297,11 +297,11 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.load", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m deploy.experiments.load", description=__doc__.splitlines()[0])
     ap.add_argument("mcap", type=Path, help="a run's run.mcap")
     ap.add_argument("--json", action="store_true", help="print the summary and every interval as one JSON object")
     args = ap.parse_args(argv)
-    logging.basicConfig(level="INFO", format="deploy.load: %(message)s")
+    logging.basicConfig(level="INFO", format="deploy.experiments.load: %(message)s")
     if not args.mcap.is_file():
         print(f"error: mcap: {args.mcap} is not a file", file=sys.stderr)
         return 2

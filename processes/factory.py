@@ -58,8 +58,8 @@ log = logging.getLogger(__name__)
 
 ENV = "AUTOCAST_FACTORY"
 OFF_VALUES = ("0", "off", "popen", "no", "false")
-# The modules a run's processes are (deploy/table.py): imported once in the zygote.
-RUN_MODULES = ("world_server.__main__", "channel_proxy.__main__", "vehicle_agent.__main__", "deploy.recorder")
+# The modules a run's processes are (deploy/launch/table.py): imported once in the zygote.
+RUN_MODULES = ("world_server.__main__", "channel_proxy.__main__", "vehicle_agent.__main__", "deploy.record.recorder")
 STOP_GRACE_S = 3.0  # the owner is gone: children get this long after SIGINT before SIGKILL
 _MAX_MSG = 1 << 20
 _MAX_FDS = 3
@@ -182,7 +182,7 @@ class Factory:
                  stop_grace_s: float = STOP_GRACE_S) -> None:
         """``start="fork"``: the zygote is a fork of this process, warm with all it has
         loaded (refused where that is unsafe, see ``fork_unsafe_reason``); ``"exec"``: a
-        fresh interpreter (``python -m deploy.factory``) that imports ``preload``, for an
+        fresh interpreter (``python -m processes.factory``) that imports ``preload``, for an
         owner that cannot fork (it has a Zenoh session, or threads: a Dask worker); its
         children load their kernels, unless a ``"module:function"`` entry of ``preload``
         loaded them in the zygote (called after the import). ``stop_grace_s``: how long
@@ -195,7 +195,7 @@ class Factory:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._popen: subprocess.Popen | None = None
         if start == "exec":
-            self._popen = subprocess.Popen([sys.executable, "-m", "deploy.factory", str(theirs.fileno()),
+            self._popen = subprocess.Popen([sys.executable, "-m", "processes.factory", str(theirs.fileno()),
                                             f"--stop-grace-s={stop_grace_s!r}", *preload],
                                            pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL,
                                            stdout=subprocess.DEVNULL)
@@ -644,7 +644,7 @@ def _flush_std_streams() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m deploy.factory FD [--stop-grace-s=S] [MODULE ...]``: serve as a zygote
+    """``python -m processes.factory FD [--stop-grace-s=S] [MODULE ...]``: serve as a zygote
     on the socket FD, after importing the modules (``Factory(start="exec")`` starts it)."""
     argv = sys.argv[1:] if argv is None else argv
     if not argv or not argv[0].isdigit():

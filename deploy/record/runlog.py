@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from deploy.recorder import MESSAGE_ENCODING, METADATA_NAME, read_messages, read_metadata
+from deploy.record.recorder import MESSAGE_ENCODING, METADATA_NAME, read_messages, read_metadata
 from protocol.codec import MalformedMessage, decode
 from protocol.messages import (ChannelStats, DataBundle, LidarConfig, MapMsg, Mission, Scan, WorldTruth)
 from vehicle_agent.frames import sensor_to_world
 from vehicle_agent.payload import decode_object
 
-log = logging.getLogger("deploy.runlog")
+log = logging.getLogger("deploy.record.runlog")
 
 DEFAULT_SCAN_POINTS = 20_000
 GROUND_Z_M = 0.2  # LiDAR returns below this height (world z) are drawn as ground

@@ -1,6 +1,6 @@
 """The launcher of a docker compose run (``autocast deploy --compose``).
 
-    python -m deploy.compose_launcher --run-id R --connect tcp/router-alpha:7447 --routers 3 \
+    python -m deploy.multihost.compose_launcher --run-id R --connect tcp/router-alpha:7447 --routers 3 \
         --run-dir runs/R --record '{"scheme": "autocast", "scenario": "left_turn", ...}'
 
 Compose starts the processes; this service does the rest of what ``autocast run``'s
@@ -32,15 +32,15 @@ from typing import Any
 
 import zenoh
 
-from deploy import run
-from deploy.hosts import router_links
+from deploy.launch import run
+from deploy.multihost.hosts import router_links
 from protocol import keys
 from protocol.codec import MalformedMessage, decode
 from protocol.messages import Outcome, Tick
 from protocol.session import DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
 
-log = logging.getLogger("deploy.compose_launcher")
+log = logging.getLogger("deploy.multihost.compose_launcher")
 
 NAME = "launcher"  # its participant token: ac/<run>/alive/p/launcher
 MESH_TIMEOUT_S = 120.0  # every router up and linked (containers start in any order)
@@ -150,7 +150,7 @@ def record_of(outcome: Outcome | None, failure: str | None, base: dict[str, Any]
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.compose_launcher", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.multihost.compose_launcher", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-id", required=True)
     ap.add_argument("--connect", action="append", required=True, metavar="ENDPOINT", help="this host's router")

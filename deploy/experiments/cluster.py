@@ -1,20 +1,20 @@
 """``autocast sweep --cluster tcp://HOST:8786``: a sweep's runs as tasks on Dask workers.
 
 The client (the machine that runs ``autocast sweep``) plans the sweep as usual
-(``deploy/sweep.py``) and submits each run still to do as one Dask task, asking for
+(``deploy/experiments/plan.py``) and submits each run still to do as one Dask task, asking for
 as many units of the workers' ``vehicles`` resource as the run has connected
 vehicles: a worker started with ``--resources "vehicles=40"`` holds runs of at most
 40 vehicles at once. On the worker the task starts the same ``autocast run ... --json``
 as a local sweep, in its own process group, forked (as a local sweep's launchers are
 from the sweep) from the worker's warm zygote: a fresh interpreter made at the
 worker's first run, which imports the stack and loads every numba kernel once
-(``deploy/factory.py``; a worker has threads, so it cannot fork itself). When the
+(``processes/factory.py``; a worker has threads, so it cannot fork itself). When the
 worker dies, the zygote's socket closes and it stops every launcher (SIGINT, which
 stops a run's processes as Ctrl-C does, then SIGKILL). Without a zygote
 (``AUTOCAST_FACTORY=popen``) the launcher is a new interpreter under this module's
 ``launch`` wrapper, which asks the kernel for SIGINT when the worker dies
 (``PR_SET_PDEATHSIG``). The task returns the run's record, built on the worker
-(``sweep.record_of``: the outcome's scalars, or the failure and stderr tail) with
+(``plan.record_of``: the outcome's scalars, or the failure and stderr tail) with
 the launcher's stdout and stderr; the client appends each record to
 ``results.jsonl`` as it arrives and writes the logs under ``logs/``, so resume,
 ``--retry-failed``, the progress line and ``autocast report`` see what a local sweep
@@ -58,16 +58,17 @@ from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from deploy import factory as process_factory
-from deploy.sweep import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, LAUNCHER_GRACE_S, LAUNCHER_MODULES,
-                          LAUNCHER_SLACK_S, STDERR_TAIL_CHARS, Job, Progress, RunKey, Sweep, SweepError, SweepSpec,
-                          _signal_group, append_record, estimate_run_s, finish_sweep, git_revision,
-                          kill_run_processes, launcher_args, limit_mcap, read_results, record_of)
+from deploy.experiments.plan import (EXIT_BAD_INPUT, EXIT_INTERRUPTED, STDERR_TAIL_CHARS, RunKey, SweepError, SweepSpec,
+                                      append_record, estimate_run_s, read_results, record_of)
+from deploy.experiments.runner import (LAUNCHER_GRACE_S, LAUNCHER_MODULES, LAUNCHER_SLACK_S, Job, Progress, Sweep,
+                                        _signal_group, finish_sweep, git_revision, kill_run_processes, launcher_args,
+                                        limit_mcap)
+from processes import factory as process_factory
 
 if TYPE_CHECKING:
     from distributed import Client, Future
 
-log = logging.getLogger("deploy.cluster")
+log = logging.getLogger("deploy.experiments.cluster")
 
 EXIT_CLUSTER_LOST = 3  # the scheduler could not be reached, or went away during the sweep
 RESOURCE = "vehicles"  # the worker resource a run asks for, one unit per connected vehicle
@@ -149,7 +150,7 @@ def free_run_id(runs_dir: Path, name: str, attempt: int) -> str:
 
 def _start(task: ClusterRun, run_id: str, tmp: Path) -> Job:
     """The launcher: forked from this worker's warm zygote, as a local sweep's launchers
-    are from the sweep's; or (no zygote) ``python -m deploy.cluster launch WORKER_PID
+    are from the sweep's; or (no zygote) ``python -m deploy.experiments.cluster launch WORKER_PID
     <autocast run args>``, which warms its own caches."""
     out_path, err_path = tmp / "launcher.out", tmp / "launcher.err"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -164,7 +165,7 @@ def _start(task: ClusterRun, run_id: str, tmp: Path) -> Job:
                 log.warning("the worker's process factory failed (%s); starting the launcher anew", exc)
         if proc is None:
             args = launcher_args(task.spec, task.key, run_id, Path(task.runs_dir), warm=False)
-            proc = subprocess.Popen([sys.executable, "-m", "deploy.cluster", "launch", str(os.getpid()), *args[1:]],
+            proc = subprocess.Popen([sys.executable, "-m", "deploy.experiments.cluster", "launch", str(os.getpid()), *args[1:]],
                                     stdout=out, stderr=err, stdin=subprocess.DEVNULL, start_new_session=True, env=env)
     now = time.monotonic()
     log.debug("started %s (pid %d): %s", run_id, proc.pid, " ".join(args))
@@ -199,7 +200,7 @@ def worker_factory() -> process_factory.Factory | None:
 def zygote_warm_up() -> None:
     """In the worker's zygote: load (or, on a new host, compile) every numba kernel, as
     a local sweep does before its first run."""
-    from deploy.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from world_server.scenarios import ScenarioParams
 
     warm_numba_caches(ScenarioParams())
@@ -257,7 +258,7 @@ def _stop_flag(client: Client, token: str) -> str | None:
 def _stop_launcher(job: Job, runs_dir: Path, kill_now: Callable[[], bool]) -> None:
     """SIGINT to the launcher's group (it stops its processes in order), up to
     ``LAUNCHER_GRACE_S`` or until ``kill_now()``; then SIGKILL, and the processes it
-    listed that still carry its run id (``sweep.kill_run_processes``)."""
+    listed that still carry its run id (``runner.kill_run_processes``)."""
     _signal_group(job.proc.pid, signal.SIGINT)
     deadline = time.monotonic() + LAUNCHER_GRACE_S
     while not job.exited() and time.monotonic() < deadline:
@@ -299,7 +300,7 @@ def _version() -> str:
 
 
 def launch(argv: list[str]) -> int:
-    """``python -m deploy.cluster launch WORKER_PID <autocast run args>``: ``autocast run``
+    """``python -m deploy.experiments.cluster launch WORKER_PID <autocast run args>``: ``autocast run``
     that gets SIGINT when the worker that started it dies, and so stops its processes."""
     parent = int(argv[0])
     with contextlib.suppress(OSError, AttributeError):
@@ -309,10 +310,10 @@ def launch(argv: list[str]) -> int:
     if os.getppid() != parent:  # the worker died before the signal was armed
         print(f"autocast run: the worker (pid {parent}) is gone", file=sys.stderr)
         return EXIT_INTERRUPTED
-    from deploy.cli import exit_now
-    from deploy.cli import main as cli_main
+    from deploy.launch.run import exit_now
+    from deploy.launch.run import main as run_main
 
-    exit_now(cli_main(["run", *argv[1:]]))
+    exit_now(run_main(argv[1:]))
     return EXIT_INTERRUPTED  # not reached
 
 
@@ -559,7 +560,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["launch"] and len(argv) > 1 and argv[1].isdigit():
         return launch(argv[1:])
-    print("usage: python -m deploy.cluster launch WORKER_PID <autocast run arguments>  (started by the "
+    print("usage: python -m deploy.experiments.cluster launch WORKER_PID <autocast run arguments>  (started by the "
           "tasks of autocast sweep --cluster)", file=sys.stderr)
     return EXIT_BAD_INPUT
 

@@ -4,7 +4,7 @@ A new file beside the run's log, written with the ``foxglove-sdk`` package: the 
 every vehicle's box and shared path, each LiDAR scan the recorder kept and the points
 each vehicle received, as ``foxglove.SceneUpdate``, ``foxglove.PointCloud`` and
 ``foxglove.FrameTransforms`` messages that Foxglove's 3-D panel draws without any
-setup, plus the JSON mirror of every message (``deploy.recorder``) for its plots.
+setup, plus the JSON mirror of every message (``deploy.record.recorder``) for its plots.
 
 Every message's log time is its sim time (``t_sim_s`` in ns; the map at 0), so the
 file plays back at the pace of the simulated world, whatever the wall time of the run.
@@ -32,15 +32,15 @@ from foxglove.messages import (Color, CubePrimitive, FrameTransform, FrameTransf
                                PointCloud, Quaternion, SceneEntity, SceneUpdate, TextPrimitive, Timestamp, Vector3)
 from foxglove.messages import Pose as FoxPose
 
-from deploy.recorder import JSON_PREFIX, JSON_SCHEMA_ENCODING, JSON_SCHEMA_PREFIX, json_schema_of, to_json
-from deploy.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, iter_log, read_prelude, received_world,
+from deploy.record.recorder import JSON_PREFIX, JSON_SCHEMA_ENCODING, JSON_SCHEMA_PREFIX, json_schema_of, to_json
+from deploy.record.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, iter_log, read_prelude, received_world,
                            run_metadata, scan_points, stack)
 from protocol.codec import MalformedMessage
 from protocol.messages import (ControlMsg, DataBundle, EmpBundle, LidarConfig, MapMsg, Mission, Scan, Tick,
                                WorldTruth)
 from protocol.security import opened
 
-log = logging.getLogger("deploy.export")
+log = logging.getLogger("deploy.record.export")
 
 WORLD_FRAME = "world"
 MAX_SIM_S = 1.8e10  # below 2^64 ns

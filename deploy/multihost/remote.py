@@ -1,13 +1,13 @@
 """What ``autocast deploy`` runs on a host, through that host's command prefix.
 
-``python -m deploy.remote exec MODULE ARGS...``: makes this process lead its own
+``python -m deploy.multihost.remote exec MODULE ARGS...``: makes this process lead its own
 process group, prints ``autocast-remote: pid N on HOST`` as its first line, then
 becomes ``python -m MODULE ARGS...`` (same pid). The launcher reads that line from
 the log it collects (the prefix forwards stdout) and stops the process with
 ``kill -s INT -- -N`` through the same prefix: a remote process is stopped where it
 runs, whatever the prefix is (ssh, ip netns exec, a local shell).
 
-``python -m deploy.remote warm SCENARIO_JSON``: compiles or loads the numba caches
+``python -m deploy.multihost.remote warm SCENARIO_JSON``: compiles or loads the numba caches
 for that scenario on this host, so its agents start from the cache.
 """
 
@@ -31,7 +31,7 @@ def exec_module(argv: list[str]) -> None:
 def warm(params_json: str) -> int:
     import logging
 
-    from deploy.run import warm_numba_caches
+    from deploy.launch.warmup import warm_numba_caches
     from world_server.scenarios import params_from_dict
 
     logging.basicConfig(level="INFO", format="%(asctime)s warm %(message)s")

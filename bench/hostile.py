@@ -1,4 +1,4 @@
-"""A hostile peer: ``python -m deploy.hostile --run-id R --connect HUB --vids 0 1 2``.
+"""A hostile peer: ``python -m bench.hostile --run-id R --connect HUB --vids 0 1 2``.
 
 Joins a run's hub and, once the run is live, publishes on every data key the run uses
 (every ``protocol.keys`` key but the liveliness tokens, for each given vehicle, and the
@@ -65,7 +65,7 @@ import numpy as np
 import zenoh
 
 from bench import fuzz
-from deploy.recorder import peek_envelope
+from protocol.codec import peek_envelope
 from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
@@ -75,7 +75,7 @@ from protocol.security import Authority, Credentials, Signer, Verifier
 from protocol.session import add_zenoh_args, session_scope, zenoh_args_from
 from vehicle_agent.payload import ObjectPayload, encode_object, header_of
 
-log = logging.getLogger("deploy.hostile")
+log = logging.getLogger("bench.hostile")
 
 # the message type each data key carries (its subscribers decode that type only)
 KEY_TYPES: dict[Callable[..., str], type] = {
@@ -361,7 +361,7 @@ def _late(session: zenoh.Session, run: str, vids: list[int], proxy_up: threading
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.hostile", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m bench.hostile", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run-id", required=True)
     ap.add_argument("--vids", type=int, nargs="+", required=True, help="the run's connected vehicles")

@@ -1,6 +1,6 @@
 """One host's Zenoh router in a multi-host run (``autocast deploy``).
 
-``python -m deploy.router --listen tcp/10.0.0.2:7447 --connect tcp/10.0.0.1:7447``
+``python -m deploy.multihost.router --listen tcp/10.0.0.2:7447 --connect tcp/10.0.0.1:7447``
 
 Every process of the run on this host is a client of this router; the routers of the
 run's hosts connect to each other with explicit endpoints (no multicast, no gossip)
@@ -21,16 +21,16 @@ import zenoh
 
 from protocol.session import ZenohArgs, make_config
 
-log = logging.getLogger("deploy.router")
+log = logging.getLogger("deploy.multihost.router")
 
-# The same patience as the single-host hub (deploy.run.HUB_CONFIG_JSON5): a DROP message
+# The same patience as the single-host hub (deploy.launch.run.HUB_CONFIG_JSON5): a DROP message
 # waits up to 200 ms for a congested egress queue before it is dropped.
 WAIT_BEFORE_DROP_US = 200_000
 LINK_LOG_PERIOD_S = 2.0
 
 
 def router_config(listen: list[str], connect: list[str], config_file: str | None = None) -> zenoh.Config:
-    """``config_file``: the run's credentials and ACL for this router (deploy.credentials)."""
+    """``config_file``: the run's credentials and ACL for this router (deploy.launch.credentials)."""
     conf = make_config(ZenohArgs(tuple(listen), tuple(connect), config_file))
     conf.insert_json5("adminspace/enabled", "true")
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(WAIT_BEFORE_DROP_US))
@@ -39,7 +39,7 @@ def router_config(listen: list[str], connect: list[str], config_file: str | None
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.router", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.multihost.router", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--listen", action="append", required=True, metavar="ENDPOINT",
                     help="where this host's processes (and the other routers) reach this router")

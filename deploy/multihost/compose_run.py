@@ -1,7 +1,7 @@
 """One run in docker containers, end to end, checked against the same run on one host.
 
-    python -m deploy.compose_run --scenario left_turn --vehicles 10 --scheme autocast
-    python -m deploy.compose_run --vehicles 10 --scheme single --fault     # kill an agent and a router mid-run
+    python -m deploy.multihost.compose_run --scenario left_turn --vehicles 10 --scheme autocast
+    python -m deploy.multihost.compose_run --vehicles 10 --scheme single --fault     # kill an agent and a router mid-run
 
 It starts the Docker daemon if none answers, makes a base image if there is none (the
 official ``python:3.11-slim`` if it is here, else a Debian root file system made with
@@ -42,11 +42,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from deploy import run
+from deploy.launch import run
 
-log = logging.getLogger("deploy.compose_run")
+log = logging.getLogger("deploy.multihost.compose_run")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 IMAGE = "autocast-py"
 OFFICIAL_BASE = "python:3.11-slim"
 DEBIAN_BASE = "autocast-base:bookworm"
@@ -288,7 +288,8 @@ def compose_run(args: argparse.Namespace, flags: list[str], report: Report) -> i
 
 
 def _with_daemon(args: argparse.Namespace, flags: list[str], cfg, report: Report) -> int:
-    from deploy import hosts, table
+    from deploy.multihost import hosts
+    from deploy.launch import table
 
     cmd = compose_command()
     if cmd is None:
@@ -400,7 +401,7 @@ def _compare(flags: list[str], cfg, record: dict, report: Report) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.compose_run", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m deploy.multihost.compose_run", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="Every other flag is autocast deploy's (autocast run --help); locked down by "
                                         "default.")

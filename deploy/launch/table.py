@@ -2,7 +2,7 @@
 
 ``processes(cfg)`` says, for one run, which processes exist and with which flags: the
 recorder, the world, the channel proxy (every scheme that shares) and one agent per
-connected vehicle. The launcher (``deploy/run.py``) only starts, watches and stops
+connected vehicle. The launcher (``deploy/launch/run.py``) only starts, watches and stops
 what this table returns; nothing else decides what a run is made of.
 """
 
@@ -13,7 +13,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy.procs import ProcSpec
+from processes.manager import ProcSpec
 from protocol.model import OURS, Model
 from world_server.scenarios import ScenarioParams, build
 
@@ -43,8 +43,8 @@ class RunConfig:
     scheduler: str | None = None  # None: the scheme's own
     channel_profile: str = DEFAULT_PROFILE  # the V2V radio, played by the proxy, assumed by the agents
     signing: bool = False  # V2X messages signed and verified (docs/security.md)
-    authority: str = ""  # the run's authority's public key (hex) once credentials are issued (deploy.credentials)
-    lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.credentials)
+    authority: str = ""  # the run's authority's public key (hex) once credentials are issued (deploy.launch.credentials)
+    lock_down: bool = False  # Zenoh: a password per process and the run's ACL (deploy.launch.credentials)
     wait_for: tuple[str, ...] = ()  # participants besides the table's whose token the world waits for before tick 0
     shm_dir: str = ""  # one host's run: the scans and bundles go through this directory (protocol.shm)
     json_mirror: bool = True  # the recorder also writes every message as JSON, for Foxglove (docs/viewing.md)
@@ -62,7 +62,7 @@ class RunConfig:
 def processes(cfg: RunConfig) -> list[ProcSpec]:
     """The run's processes, in start order; the recorder comes first."""
     table = [
-        ProcSpec(RECORDER, "deploy.recorder", recorder_args(cfg), critical=True),
+        ProcSpec(RECORDER, "deploy.record.recorder", recorder_args(cfg), critical=True),
         ProcSpec(WORLD, "world_server", world_args(cfg), critical=True),
     ]
     if needs_proxy(cfg.scheme):
@@ -105,7 +105,7 @@ def v2x_credentials_path(cfg: RunConfig, vid: int) -> Path:
 
 
 def zenoh_config_path(cfg: RunConfig, name: str) -> Path:
-    """Process (or router) ``name``'s Zenoh config with its password (``deploy.credentials``)."""
+    """Process (or router) ``name``'s Zenoh config with its password (``deploy.launch.credentials``)."""
     return credentials_dir(cfg) / f"{name}.zenoh.json5"
 
 

@@ -8,12 +8,12 @@ user@host``, ``ip netns exec NAME sh -c``; default ``sh -c``, this machine) and 
 of the run's processes it takes (``run = ["world", "recorder", "proxy"]``,
 ``agents = 3``, ``agents = [0, 4]`` or ``agents = "rest"``).
 
-The run is the same table of processes as ``autocast run`` (``deploy.table``). Each
-host gets one Zenoh router (``deploy.router``) connected to the routers of the hosts
+The run is the same table of processes as ``autocast run`` (``deploy.launch.table``). Each
+host gets one Zenoh router (``deploy.multihost.router``) connected to the routers of the hosts
 listed before it; every process connects to its own host's router. The launcher is a
 client of the routers: it checks that they form a full mesh, then runs the same
 ``Launcher`` as ``autocast run`` (recorder first, the world's outcome, staged stop),
-with every process started and stopped through its host's prefix (``deploy.remote``),
+with every process started and stopped through its host's prefix (``deploy.multihost.remote``),
 and prints the outcome as ``autocast run`` does. Same flags and exit codes as
 ``autocast run``, plus ``--hosts`` and ``--dry-run``.
 """
@@ -39,14 +39,14 @@ from typing import Any
 
 import zenoh
 
-from deploy import run, table
-from deploy.procs import ProcessManager, ProcSpec
-from deploy.remote import PID_LINE
+from deploy.launch import run, table, warmup
+from deploy.multihost.remote import PID_LINE
+from processes.manager import ProcessManager, ProcSpec
 from protocol.session import ZenohArgs, session_scope
 
-log = logging.getLogger("deploy.hosts")
+log = logging.getLogger("deploy.multihost.hosts")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 LOCAL_PREFIX = ("sh", "-c")  # this machine
 DEFAULT_PORT = 7447
 ROLES = (table.WORLD, table.PROXY, table.RECORDER)
@@ -275,7 +275,7 @@ def assign_agents(vids: Sequence[int], hosts: Sequence[Host]) -> dict[int, Host]
 def router_spec(host: Host, hf: HostsFile, config: Path | None = None) -> ProcSpec:
     """The host's router connects to the routers of the hosts listed before it: one link
     per pair. ``config``: its credentials and the run's ACL (``--lock-down``); the routers
-    then link over mutual TLS on their ``tls_port`` (deploy/credentials.py says why)."""
+    then link over mutual TLS on their ``tls_port`` (deploy/launch/credentials.py says why)."""
     before = hf.hosts[:[h.name for h in hf.hosts].index(host.name)]
     args = ["--name", host.name, "--listen", host.listen_endpoint]
     if config is not None:
@@ -284,16 +284,16 @@ def router_spec(host: Host, hf: HostsFile, config: Path | None = None) -> ProcSp
         args += ["--connect", other.tls_endpoint if config is not None else other.endpoint]
     if config is not None:
         args += ["--zenoh-config", str(config)]
-    return ProcSpec(host.router, "deploy.router", tuple(args), critical=True)
+    return ProcSpec(host.router, "deploy.multihost.router", tuple(args), critical=True)
 
 
 # ---------------------------------------------------------------------------- commands on a host
 
 
 def shell_line(host: Host, module: str, args: Sequence[str], action: str = "exec") -> str:
-    """``cd WORKDIR && exec env ... PYTHON -m deploy.remote exec MODULE ARGS`` for the host's shell."""
+    """``cd WORKDIR && exec env ... PYTHON -m deploy.multihost.remote exec MODULE ARGS`` for the host's shell."""
     env = " ".join(shlex.quote(f"{k}={v}") for k, v in (("PYTHONUNBUFFERED", "1"), *host.env))
-    words = [host.python, "-m", "deploy.remote", action, *([module] if module else []), *args]
+    words = [host.python, "-m", "deploy.multihost.remote", action, *([module] if module else []), *args]
     return f"cd {shlex.quote(host.workdir)} && exec env {env} {shlex.join(words)}"
 
 
@@ -315,10 +315,10 @@ def put_files(host: Host, files: dict[Path, str]) -> None:
 
 def credential_files(cfg: table.RunConfig, placed: list[tuple[ProcSpec, Host]], host: Host) -> dict[Path, str]:
     """What the host's router and processes need of the run's credentials (written on the
-    launcher's machine by ``deploy.credentials``)."""
+    launcher's machine by ``deploy.launch.credentials``)."""
     paths = []
     if cfg.lock_down:
-        from deploy.credentials import tls_files
+        from deploy.launch.credentials import tls_files
 
         paths += [table.credentials_dir(cfg) / "zenoh-users.txt", table.zenoh_config_path(cfg, host.router),
                   *tls_files(cfg, host.router)]
@@ -503,13 +503,13 @@ def deploy(opts: run.LaunchOptions, hf: HostsFile, placed: list[tuple[ProcSpec, 
     routers = {h.name: None for h in hf.hosts}
     launcher_config = None
     if cfg.lock_down:
-        from deploy import credentials
+        from deploy.launch import credentials
 
         written = credentials.lock_down(cfg, {h.router: h.address for h in hf.hosts})
         routers = {h.name: written[h.router] for h in hf.hosts}
         launcher_config = str(written[credentials.LAUNCHER])
     if opts.warm_up:
-        run.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
+        warmup.warm_numba_caches(cfg.params)  # the launcher's host, and any host sharing its files
         warm_hosts([h for h in hf.hosts if h.warm_up], cfg.params, cfg.log_dir, stop)
     host_of = {spec.name: host for spec, host in placed} | {h.router: h for h in hf.hosts}
     procs = HostProcessManager(cfg.log_dir, host_of)
@@ -582,7 +582,7 @@ def plan(hf: HostsFile, placed: list[tuple[ProcSpec, Host]], cfg: table.RunConfi
 # ---------------------------------------------------------------------------- docker compose
 
 IMAGE = "autocast-py"
-LAUNCHER = "launcher"  # the compose file's launcher (deploy.compose_launcher), on the recorder's host
+LAUNCHER = "launcher"  # the compose file's launcher (deploy.multihost.compose_launcher), on the recorder's host
 SECRETS = PurePosixPath("/run/secrets")  # where compose mounts each service's secrets
 APP = PurePosixPath("/app")  # the image's checkout (deploy/Dockerfile)
 
@@ -632,7 +632,7 @@ def compose(cfg: table.RunConfig, hf: HostsFile, where: Path = REPO / "deploy") 
                      "--routers", str(len(hf.hosts)), "--run-dir", str(inside.run_dir), "--record", json.dumps(record)]
     if cfg.lock_down:
         launcher_args += ["--zenoh-config", str(SECRETS / f"{LAUNCHER}.zenoh.json5")]
-    services[LAUNCHER] = service(recorder_host, "deploy.compose_launcher", launcher_args,
+    services[LAUNCHER] = service(recorder_host, "deploy.multihost.compose_launcher", launcher_args,
                                  compose_secrets(cfg, LAUNCHER))
     services[LAUNCHER].update(depends_on=[recorder_host.router], **outputs)
     for spec, h in placed:
@@ -659,7 +659,7 @@ def compose_secrets(cfg: table.RunConfig, name: str) -> list[str]:
     if not cfg.lock_down:
         return []
     if name.startswith("router-"):
-        from deploy.credentials import tls_files
+        from deploy.launch.credentials import tls_files
 
         return ["zenoh-users.txt", table.zenoh_config_path(cfg, name).name, *(p.name for p in tls_files(cfg, name))]
     return [table.zenoh_config_path(cfg, name).name]
@@ -689,10 +689,10 @@ def compose_text(cfg: table.RunConfig, hf: HostsFile, how: str, where: Path = RE
 
 
 def write_compose(cfg: table.RunConfig, hf: HostsFile, out: Path, how: str) -> None:
-    """The compose file, and locked down the run's credentials (deploy.credentials) with
+    """The compose file, and locked down the run's credentials (deploy.launch.credentials) with
     the routers' configs naming the files where the containers see them."""
     if cfg.lock_down:
-        from deploy import credentials
+        from deploy.launch import credentials
 
         written = credentials.lock_down(cfg, {h.router: h.address for h in hf.hosts})
         host_dir = str(table.credentials_dir(cfg)) + "/"

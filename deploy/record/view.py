@@ -11,7 +11,7 @@ vehicle. ``docs/viewing.md`` lists the entities.
 The log is read message by message (the MCAP reader holds one chunk at a time) and
 logged as it goes, so memory does not grow with the run. A message that does not
 decode is skipped and counted; a damaged file is shown up to the damage.
-``--foxglove`` writes what ``autocast export --foxglove`` writes (``deploy.export``).
+``--foxglove`` writes what ``autocast export --foxglove`` writes (``deploy.record.export``).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from deploy.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, Prelude, iter_log, read_prelude,
+from deploy.record.runlog import (DEFAULT_SCAN_POINTS, GROUND_Z_M, LogStats, Prelude, iter_log, read_prelude,
                            received_world, run_metadata, scan_points, stack)
 from protocol.codec import MalformedMessage, decode
 from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle, DataTx,
@@ -39,7 +39,7 @@ from protocol.messages import (AgentReport, ChannelStats, Command, ControlMsg, C
 from protocol.security import opened
 from vehicle_agent.frames import sensor_to_world
 
-log = logging.getLogger("deploy.view")
+log = logging.getLogger("deploy.record.view")
 
 ViewStats = LogStats  # what a view read (the name the CLI and its tests know)
 
@@ -690,7 +690,7 @@ def main(argv: list[str] | None = None) -> int:
         print(NO_VIEWER.format(mcap=args.mcap), file=sys.stderr)
         return 2
     if args.foxglove:
-        from deploy.export import export_foxglove  # the foxglove package only when asked for
+        from deploy.record.export import export_foxglove  # the foxglove package only when asked for
         print(f"autocast view: {export_foxglove(path, args.foxglove, args.scan_points).summary()} -> {args.foxglove}")
         if not (args.save or args.connect or args.spawn):
             return 0

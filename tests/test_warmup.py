@@ -91,7 +91,11 @@ def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
     and sharing scheme then load. A kernel it misses compiles inside a tick instead, in
     every agent at once; on CI one such compile outlasted a test's safety net."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, timeout=900)
+    warm = subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, text=True, timeout=900)
+    said = warm.stderr.splitlines()  # what a first run shows while it compiles: how many, and when it is done
+    assert any(line.startswith("compiling ") and "numba kernels on" in line for line in said), warm.stderr[-2000:]
+    assert any(line.startswith("compiled ") and "later runs load them from the cache" in line for line in said), \
+        warm.stderr[-2000:]
     cached = {p.name for p in (tmp_path / "numba").rglob("*.nbc")}
     assert cached, "the warm-up wrote no numba cache"
     for scenario, scheme in (("overtaking", "autocast"), ("left_turn", "emp")):
@@ -101,3 +105,27 @@ def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
         assert done.returncode in (0, 1), done.stderr[-2000:]  # judged (2 s of sim time: a deadlock)
     grown = {p.name for p in (tmp_path / "numba").rglob("*.nbc")} - cached
     assert not grown, f"compiled during the runs, not by the warm-up: {sorted(grown)}"
+
+
+def test_compile_progress_counts_each_of_the_projects_kernels_once():
+    from deploy.launch.warmup import Progress
+
+    progress = Progress(total=2, t0=0.0)
+    for name in ("vehicle_agent.perception.build_grid", "numba.cpython.unicode.unicode_len",
+                 "vehicle_agent.perception.build_grid", "world_server.lidar._cm"):
+        progress.started(name)
+        progress.finished(name)
+    assert progress.done == 2 and progress.now == "world_server.lidar._cm"
+
+
+def test_the_warm_up_reaches_every_cached_kernel_of_the_stack():
+    """After the suite's first step (``WARM_ARGV``), a launcher finds nothing to compile: a
+    kernel the warm-up never reaches would be counted missing, and compiled in workers,
+    at every run's start."""
+    from deploy.launch.warmup import missing_kernels
+
+    assert missing_kernels() == []
+    done = subprocess.run([sys.executable, "-c", "import deploy.cli, deploy.launch.run, deploy.experiments.runner; "
+                           "from deploy.launch.warmup import missing_kernels; print(missing_kernels())"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.stdout.strip() == "[]", done.stdout + done.stderr[-2000:]

@@ -33,7 +33,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import vehicle_agent.__main__ as agent_main
-from test_invariants import _array, _set  # a wire list's arrays and fields, changed
+from test_invariants import _array, _header_float, _set  # a wire list's arrays and fields, changed
 from protocol import keys
 from protocol.codec import COORD_BOUND_M, MalformedMessage, _packed_to_wire, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, Mission, MapMsg, Reception, Scan, Signed
@@ -242,12 +242,6 @@ def _without_receptions(data_raw: bytes, sender: int) -> bytes:
     keep = np.array([r.sender != sender for r in b.receptions], bool)
     return encode(DataBundle(b.tick, b.t_sim_s, b.receivers, np.ascontiguousarray(b.decoded[:, keep]),
                              [r for r, k in zip(b.receptions, keep) if k]))
-
-
-def _header_float(p: bytes, field: str, value: float) -> bytes:
-    out = bytearray(p)
-    struct.pack_into("<f", out, 16 + 4 * list(HEADER_BOUNDS).index(field), value)  # the floats start at byte 16
-    return bytes(out)
 
 
 @st.composite

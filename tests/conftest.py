@@ -91,6 +91,21 @@ def hub() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
 
 
+@pytest.fixture(scope="session")
+def run_factory():
+    """A warm process factory (``processes.factory``) for the tests that launch a run from
+    this process: ``Launcher(..., procs=ProcessManager(log_dir, run_factory))`` forks the
+    run's processes from it, as ``autocast run`` forks them from its own, instead of
+    starting an interpreter for each that imports the stack anew (~0.7 s of CPU a
+    process). This process has had Zenoh sessions, so the zygote is a fresh interpreter
+    (``start="exec"``); one per worker, made when first asked for."""
+    from processes.factory import RUN_MODULES, Factory
+
+    factory = Factory(RUN_MODULES, start="exec")
+    yield factory
+    factory.close()
+
+
 @pytest.fixture
 def procs():
     """Start ``python -m ...`` processes; every one is killed and reaped at teardown."""

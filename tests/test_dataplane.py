@@ -795,8 +795,8 @@ def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed()
         payloads.append(bad if bad is not None else raw)
         if bad is None:
             want.append(decode_object(raw))
-    batch, n_bad = decode_objects(payloads)
-    assert n_bad == len(payloads) - len(want) > 0
+    batch, refused = decode_objects(payloads)
+    assert len(refused) == len(payloads) - len(want) > 0 and all(isinstance(e, MalformedMessage) for e in refused)
     assert batch.keys() == [(o.sender, o.object_id) for o in want]
     np.testing.assert_array_equal(batch.t_sim_s, [o.t_sim_s for o in want])
     np.testing.assert_array_equal(batch.sender_pose, [[o.sender_pose.x_m, o.sender_pose.y_m, o.sender_pose.yaw_rad]
@@ -806,8 +806,8 @@ def test_decoding_a_batch_equals_decoding_each_payload_and_drops_the_malformed()
     assert batch.points_sensor.dtype == np.float32
     np.testing.assert_array_equal(batch.points_sensor, np.concatenate([o.points_sensor for o in want]))
     assert batch.counts.tolist() == [len(o.points_sensor) for o in want]
-    empty, n_bad = decode_objects([])
-    assert len(empty) == 0 and n_bad == 0 and empty.points_sensor.shape == (0, 3)
+    empty, refused = decode_objects([])
+    assert len(empty) == 0 and refused == [] and empty.points_sensor.shape == (0, 3)
 
 
 def test_encoding_a_senders_objects_at_once_equals_encoding_each():
@@ -877,7 +877,7 @@ def test_the_store_keeps_the_same_objects_as_one_dict_entry_per_object():
     rng = np.random.default_rng(5)
     store, ref = ReceivedStore(), _DictStore()
     for tick in range(40):
-        t_now = tick * 0.1
+        t_now = 2.0 + tick * 0.1  # every time it draws after the run's start (a payload's t_sim_s >= 0)
         objs = []
         for _ in range(int(rng.integers(0, 25))):
             pts = rng.normal(0, 2, (int(rng.integers(0, 30)), 3)).astype(np.float32)
@@ -886,13 +886,13 @@ def test_the_store_keeps_the_same_objects_as_one_dict_entry_per_object():
                                       Pose(*rng.normal(0, 40, 3)), float(np.float32(rng.uniform(1.5, 4))),
                                       pts.mean(axis=0) if len(pts) else np.zeros(3, np.float32),
                                       rng.normal(0, 8, 2).astype(np.float32), pts))
-        batch, bad = decode_objects([encode_object(o) for o in objs])
+        batch, refused = decode_objects([encode_object(o) for o in objs])
         decoded = [decode_object(encode_object(o)) for o in objs]
         store.add_batch(batch)
         ref.add_many(decoded)
         fresh = set(batch.keys())
         got, want = store.current(t_now, fresh), ref.current(t_now, fresh)
-        assert got.keys == [w[0] for w in want] and bad == 0
+        assert got.keys == [w[0] for w in want] and refused == []
         assert got.fresh.tolist() == [w[4] for w in want]
         np.testing.assert_array_equal(got.age_s, [w[3] for w in want])
         np.testing.assert_array_equal(got.velocity, np.array([w[2] for w in want]).reshape(-1, 2))

@@ -82,8 +82,8 @@ def test_after_fusion_the_collider_is_in_the_egos_grid_at_its_true_position(left
     truth = collider_truth(sim)
     col_track, _ = nearest_track(views[TRUCK], truth.mean(axis=0))
     payload = planes[TRUCK].payloads(views[TRUCK], [col_track.track_id])[col_track.track_id]
-    fused, bad = planes[EGO].fuse(views[EGO], [payload])
-    assert bad == 0
+    fused, refused = planes[EGO].fuse(views[EGO], [payload])
+    assert refused == []
     rows, cols = np.nonzero(fused.received)
     assert len(rows) > 5
     centers = views[EGO].grid.cell_centers(rows, cols)

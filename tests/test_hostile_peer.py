@@ -29,7 +29,8 @@ from mcap.reader import make_reader
 
 from deploy.launch import table
 from bench.hostile import KEY_TYPES, NOT_DATA, key_functions
-from processes.manager import ProcSpec
+from processes.factory import Factory
+from processes.manager import ProcessManager, ProcSpec
 from deploy.record.recorder import EGO_VID, McapLog, subscriptions
 from deploy.launch.run import Launcher, RunResult, open_hub, options_from, parse_args, prepare
 from deploy.launch.warmup import warm_numba_caches
@@ -49,10 +50,12 @@ LATE_S = "2.0"  # the peer's injected delay past the moment a world that did not
 INSIDER, VICTIM = 1, 0  # the compromised vehicle (the occluder truck: it sends objects), the one it claims to be (the ego)
 
 
-def _run(out: Path, run_id: str, hostile: bool, via_shm: bool = True) -> tuple[RunResult, dict[str, int | None]]:
-    """One run as ``autocast run`` makes it (``via_shm`` False: every payload over Zenoh,
-    as across hosts), optionally with the hostile peer as one more process on its hub;
-    returns the result and every process's exit code."""
+def _run(out: Path, run_id: str, hostile: bool, factory: Factory, via_shm: bool = True,
+         ) -> tuple[RunResult, dict[str, int | None]]:
+    """One run as ``autocast run`` makes it, its processes forked from ``factory``
+    (``via_shm`` False: every payload over Zenoh, as across hosts), optionally with the
+    hostile peer as one more process on its hub; returns the result and every process's
+    exit code."""
     opts = options_from(parse_args(["--out", str(out), "--run-id", run_id, *FLAGS]), hub="")
     opts.run.log_dir.mkdir(parents=True)
     opts = replace(opts, run=prepare(opts.run))
@@ -68,7 +71,8 @@ def _run(out: Path, run_id: str, hostile: bool, via_shm: bool = True) -> tuple[R
                 "--run-id", run_id, "--connect", endpoint, "--vids", *vids, "--proxy", "--forge", "--insider",
                 str(table.v2x_credentials_path(cfg, INSIDER)), "--victim", str(VICTIM), "--name", "hostile",
                 "--late-s", LATE_S)))
-        launcher = Launcher(replace(opts, run=cfg), session, threading.Event(), specs=specs)
+        launcher = Launcher(replace(opts, run=cfg), session, threading.Event(),
+                            procs=ProcessManager(cfg.log_dir, factory), specs=specs)
         result = launcher.run()
     return result, {name: proc.returncode for name, (_, proc) in launcher.procs.procs.items()}
 
@@ -78,20 +82,21 @@ pytestmark = pytest.mark.xdist_group("test_hostile_peer")
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, run_factory):
     """The same run without and with the hostile peer, side by side (lock-step: the
     outcome does not depend on timing)."""
     out = tmp_path_factory.mktemp("hostile")
     warm_numba_caches(options_from(parse_args(["--run-id", "x", *FLAGS]), hub="").run.params)
     with ThreadPoolExecutor(2) as pool:
-        calm, hostile = pool.submit(_run, out, "calm", False), pool.submit(_run, out, "hostile", True)
+        calm, hostile = (pool.submit(_run, out, "calm", False, run_factory),
+                         pool.submit(_run, out, "hostile", True, run_factory))
         return calm.result(timeout=300), hostile.result(timeout=300)
 
 
 @pytest.fixture(scope="module")
-def zenoh_run(tmp_path_factory):
+def zenoh_run(tmp_path_factory, run_factory):
     """The hostile run once more with every payload over Zenoh, as across hosts."""
-    return _run(tmp_path_factory.mktemp("hostile-zenoh"), "hostile-zenoh", True, via_shm=False)
+    return _run(tmp_path_factory.mktemp("hostile-zenoh"), "hostile-zenoh", True, run_factory, via_shm=False)
 
 
 def _vehicles() -> tuple[list[int], set[int]]:

@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import math
 import re
+import struct
 
 import msgpack
 import numpy as np
 import pytest
 
 from protocol.codec import COORD_BOUND_M, MalformedMessage, _packed_to_wire, decode, encode, message_types
-from protocol.messages import (AgentReport, Certificate, ChannelStats, Command, ControlMsg, CtrlBundle, DataBundle,
-                               DataTx, EmpBundle, EmpSegment, EmpUpload, InShm, Lane, LidarConfig, LightState, MapMsg,
-                               Mission, ObjectMap, Outcome, Pose, Reception, Rejected, Scan, Signed, Tick,
-                               TrafficLight, Transmission, VehicleSpec, WorldTruth)
+from protocol.messages import (MAX_SPEED_MPS, AgentReport, Certificate, ChannelStats, Command, ControlMsg,
+                               CtrlBundle, DataBundle, DataTx, EmpBundle, EmpSegment, EmpUpload, InShm, Lane,
+                               LidarConfig, LightState, MapMsg, Mission, ObjectMap, Outcome, Pose, Reception, Rejected,
+                               Scan, Signed, Tick, TrafficLight, Transmission, VehicleSpec, WorldTruth)
 from vehicle_agent.agreement import HeardControl
+from vehicle_agent.payload import HEADER_BOUNDS, ObjectPayload, decode_object, decode_objects, encode_object
 
 F4, I8 = np.float32, np.int64
 
@@ -184,3 +186,48 @@ def test_a_vehicle_reads_the_ballot_and_motion_of_a_heard_message_under_the_same
     heard = HeardControl.read(msgpack.packb(lie, use_bin_type=True))  # its ballot and motion are honest
     with pytest.raises(MalformedMessage, match=r"^ControlMsg\.unscheduled"):
         heard.message()
+
+
+# ------------------------------------------------------------------ object payloads
+# Not a message of the codec: a payload's header is a struct (vehicle_agent.payload), its
+# floats checked against HEADER_BOUNDS, the codec's bounds for the same quantities.
+
+def _object_payload(**header) -> bytes:
+    pts = np.array([[10.0, 2.0, 0.5], [10.5, 2.5, 1.0]], F4)
+    fields = dict(sender_pose=Pose(3.0, -2.0, 0.1), centroid_sensor=pts.mean(axis=0),
+                  velocity_xy=np.array([8.0, 0.0], F4), tick=7, t_sim_s=0.7, mount_height_m=1.9)
+    fields.update(header)
+    return encode_object(ObjectPayload(1, 3, points_sensor=pts, **fields))
+
+
+def _header_float(raw: bytes, field: str, value: float) -> bytes:
+    """``raw`` with the header float ``field`` (a key of ``HEADER_BOUNDS``) set to ``value``."""
+    out = bytearray(raw)
+    struct.pack_into("<f", out, 16 + 4 * list(HEADER_BOUNDS).index(field), value)  # the floats start at byte 16
+    return bytes(out)
+
+
+PAYLOAD_LIES = [(field, value) for field in HEADER_BOUNDS for value in (NAN, math.inf, -math.inf)] + [
+    ("t_sim_s", -0.1), ("t_sim_s", 2e6), ("sender_pose.x_m", 2 * COORD_BOUND_M), ("sender_pose.y_m", -BIG),
+    ("mount_height_m", BIG), ("centroid_sensor[0]", BIG), ("centroid_sensor[2]", -2 * COORD_BOUND_M),
+    ("velocity_xy[0]", 2 * MAX_SPEED_MPS), ("velocity_xy[1]", -BIG)]
+
+
+@pytest.mark.parametrize("field, value", PAYLOAD_LIES, ids=[f"{f}={v:g}" for f, v in PAYLOAD_LIES])
+def test_an_object_payload_whose_header_lies_is_refused_naming_its_field(field, value):
+    honest = _object_payload()
+    lie = _header_float(honest, field, value)
+    with pytest.raises(MalformedMessage, match="^" + re.escape(f"ObjectPayload.{field}: ")) as refused:
+        decode_object(lie)
+    batch, dropped = decode_objects([honest, lie, honest])  # the batch: the same check, the same reason
+    assert len(batch) == 2 and [str(e) for e in dropped] == [str(refused.value)]
+
+
+def test_an_object_payload_with_a_negative_tick_is_refused_and_one_at_the_bounds_is_not():
+    with pytest.raises(MalformedMessage, match=r"^ObjectPayload\.tick: "):
+        decode_object(_object_payload(tick=-1))
+    assert len(decode_objects([_object_payload(tick=-1)])[1]) == 1
+    edge = _object_payload(sender_pose=Pose(COORD_BOUND_M, -COORD_BOUND_M, 1e30), t_sim_s=0.0,
+                           velocity_xy=np.array([MAX_SPEED_MPS, -MAX_SPEED_MPS], F4))
+    assert decode_object(edge).sender_pose.x_m == COORD_BOUND_M
+    assert len(decode_objects([edge])[0]) == 1

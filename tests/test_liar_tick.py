@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import math
+import struct
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -32,7 +33,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import vehicle_agent.__main__ as agent_main
-from test_invariants import _array, _set  # a wire list's arrays and fields, changed
+from test_invariants import _array, _header_float, _set  # a wire list's arrays and fields, changed
 from protocol import keys
 from protocol.codec import COORD_BOUND_M, MalformedMessage, _packed_to_wire, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, Mission, MapMsg, Reception, Scan, Signed
@@ -41,6 +42,7 @@ from protocol.session import DropCounter
 from vehicle_agent.__main__ import Pipeline
 from vehicle_agent.agreement import HeardControl
 from vehicle_agent.guard import Guard
+from vehicle_agent.payload import DATA_STREAM, HEADER_BOUNDS
 from vehicle_agent.replay import Log, ReplayLink, model_of
 from vehicle_agent.warmup import warm_up
 
@@ -110,7 +112,8 @@ class Tick:
         return encode(Signed(env.tick, env.t_sim_s, env.certificate, raw, Signer(self.creds[self.liar]).signature(raw)))
 
     def play(self, ctrl: bytes, data: bytes):
-        """The tick with these bundles: (the decision, what the ego sent, the command, drops counted)."""
+        """The tick with these bundles: (the decision, what the ego sent, the command, the
+        drops counted by key, the rejections by stream and reason, the decision)."""
         p = copy.deepcopy(self.base)
         drops = DropCounter()
         p.link, p.guard = self._link_and_guard(drops, {TICK: ctrl}, {TICK: data})
@@ -128,7 +131,8 @@ class Tick:
         d = decisions[0]
         seen = (d.members.tolist(), d.group.tolist(), d.frames, d.missing.tolist(),
                 {v: encode(m) for v, m in sorted(d.messages.items())})
-        return seen, p.link.sent["data"].get(TICK), p.wire(cmd), sum(drops.counts.values()), d
+        rejected = p.guard.rejections.summary()["by_stream"] if p.guard is not None else {}
+        return seen, p.link.sent["data"].get(TICK), p.wire(cmd), drops.by_key(), rejected, d
 
 
 def _without(bundle_raw: bytes, sender: int) -> bytes:
@@ -242,13 +246,21 @@ def _without_receptions(data_raw: bytes, sender: int) -> bytes:
 
 @st.composite
 def payload_lies(draw):
-    """A function of a payload: the payload cut, its header's magic or version wrong, or cut short."""
+    """A function of a payload: the payload cut, its header's magic or version wrong, cut
+    short, or a float of its header (pose, centroid, velocity, ...) not finite or beyond
+    the codec's bounds."""
     cut = draw(st.integers(1, 5))
+    field = draw(st.sampled_from(sorted(HEADER_BOUNDS)))
+    beyond = [] if field.endswith("yaw_rad") else [1e30, -1e30]  # a heading need only be finite
+    value = draw(st.sampled_from([math.nan, math.inf, -math.inf, *beyond]))
+    short = draw(st.integers(0, 20))
     return draw(st.sampled_from([
         ("body not whole points", lambda p: p[:-cut] if len(p) > 64 else p + b"\x00" * cut),
-        ("shorter than its header", lambda p: p[:draw(st.integers(0, 20))]),
+        ("shorter than its header", lambda p: p[:short]),
         ("wrong magic", lambda p: b"XXXX" + p[4:]),
         ("unknown version", lambda p: p[:4] + bytes([0xEE]) + p[5:]),
+        (f"{field} {value}", lambda p: _header_float(p, field, value)),
+        ("tick negative", lambda p: p[:12] + struct.pack("<i", -1 - cut) + p[16:]),
     ]))
 
 
@@ -258,8 +270,8 @@ def test_a_lying_control_message_is_dropped_counted_and_changes_nothing_for_the_
     t = ticks[run]
     what, path, value = lie
     frame = t.lie(_set(t._body(t.liar_raw), path, value))
-    seen, sent, cmd, dropped, decision = t.play(_with_frame(t.ctrl, t.liar, frame), t.data)
-    want_seen, want_sent, want_cmd, _, _ = baselines[run, "ctrl"]
+    seen, sent, cmd, dropped, _, decision = t.play(_with_frame(t.ctrl, t.liar, frame), t.data)
+    want_seen, want_sent, want_cmd, *_ = baselines[run, "ctrl"]
     plain = decode(frame, Signed).body if t.signed else frame
     with pytest.raises(MalformedMessage):
         decode(plain, ControlMsg)  # a lie by construction: it breaks a declared invariant
@@ -268,7 +280,7 @@ def test_a_lying_control_message_is_dropped_counted_and_changes_nothing_for_the_
         read_whole = t.signed or t.liar in decision.group.tolist()  # opened only by the liar's group (or verified)
     except MalformedMessage:
         read_whole = True  # its ballot or motion: refused as it is heard
-    assert dropped == (1 if read_whole else 0), what
+    assert sum(dropped.values()) == (1 if read_whole else 0), what
     assert t.liar not in {v for v in seen[4]}, what
     assert seen == want_seen, what
     assert sent == want_sent, what
@@ -285,6 +297,14 @@ def test_a_lying_payload_is_dropped_and_changes_nothing(ticks, baselines, run, l
                   for r in b.receptions]
     if receptions == b.receptions:
         return
-    seen, sent, cmd, _, _ = t.play(t.ctrl, encode(DataBundle(b.tick, b.t_sim_s, b.receivers, b.decoded, receptions)))
-    want_seen, want_sent, want_cmd, _, _ = baselines[run, "data"]
+    seen, sent, cmd, dropped, rejected, _ = t.play(t.ctrl, encode(DataBundle(b.tick, b.t_sim_s, b.receivers,
+                                                                            b.decoded, receptions)))
+    want_seen, want_sent, want_cmd, _, want_rejected, _ = baselines[run, "data"]
     assert (seen, sent, cmd) == (want_seen, want_sent, want_cmd), what
+    row = b.receivers.tolist().index(EGO)
+    lies = sum(receptions[k] != b.receptions[k] for k in np.flatnonzero(b.decoded[row]).tolist())  # that it read
+    if t.signed:  # not what the liar signed: rejected before it is decoded
+        assert dropped == {}, what
+        assert sum(rejected.get(DATA_STREAM, {}).values()) - sum(want_rejected.get(DATA_STREAM, {}).values()) == lies
+    else:  # dropped as it is decoded, each counted once
+        assert dropped == ({DATA_STREAM: lies} if lies else {}), what

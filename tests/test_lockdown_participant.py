@@ -11,7 +11,7 @@ from dataclasses import replace
 import pytest
 
 from deploy.launch import credentials, table
-from processes.manager import ProcSpec
+from processes.manager import ProcessManager, ProcSpec
 from deploy.record.recorder import read_messages
 from deploy.launch.run import Launcher, open_hub, options_from, parse_args, prepare
 from protocol import keys, shm
@@ -36,7 +36,7 @@ def test_the_access_list_grants_a_participant_its_token_and_nothing_else(tmp_pat
 
 
 @pytest.mark.heavy
-def test_a_locked_down_run_starts_with_its_participant_who_cannot_put_on_any_vehicles_keys(tmp_path):
+def test_a_locked_down_run_starts_with_its_participant_who_cannot_put_on_any_vehicles_keys(tmp_path, run_factory):
     run_id = "locked-participant"
     opts = options_from(parse_args(["--out", str(tmp_path), "--run-id", run_id, *FLAGS]), hub="")
     opts.run.log_dir.mkdir(parents=True)
@@ -50,7 +50,8 @@ def test_a_locked_down_run_starts_with_its_participant_who_cannot_put_on_any_veh
         vids = [str(v) for v in table.connected_vids(cfg.params)]
         specs = [*table.processes(cfg),
                  ProcSpec("logger", "tests.acl_probe", ("participant", endpoint, str(config), run_id, "logger", *vids))]
-        launcher = Launcher(replace(opts, run=cfg), session, threading.Event(), specs=specs)
+        launcher = Launcher(replace(opts, run=cfg), session, threading.Event(),
+                            procs=ProcessManager(cfg.log_dir, run_factory), specs=specs)
         result = launcher.run()
     assert result.result is not None, result.failure
     assert result.result["lock_down"] is True

@@ -89,8 +89,8 @@ def test_float64_payloads_round_trip_beside_int16_ones():
     assert [len(p) for p in narrow] == [HEADER_BYTES + 12, HEADER_BYTES + 6]
     one = decode_object(wide[0])
     np.testing.assert_allclose(one.points_sensor, pts[:2], atol=1e-6)  # float64 offsets: no centimetre rounding
-    batch, bad = decode_objects([narrow[0], wide[0], b"junk", wide[1], narrow[1]])
-    assert bad == 1 and batch.object_id.tolist() == [4, 4, 5, 5] and batch.counts.tolist() == [2, 2, 1, 1]
+    batch, refused = decode_objects([narrow[0], wide[0], b"junk", wide[1], narrow[1]])
+    assert len(refused) == 1 and batch.object_id.tolist() == [4, 4, 5, 5] and batch.counts.tolist() == [2, 2, 1, 1]
     singles = np.concatenate([decode_object(p).points_sensor for p in (narrow[0], wide[0], wide[1], narrow[1])])
     assert np.array_equal(batch.points_sensor, singles)
 
@@ -143,8 +143,8 @@ def test_a_float64_body_beyond_float32_decodes_to_inf_without_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         one = decode_object(raw).points_sensor
-        batch, bad = decode_objects([raw])
-    assert bad == 0 and np.array_equal(batch.points_sensor, one, equal_nan=True)
+        batch, refused = decode_objects([raw])
+    assert refused == [] and np.array_equal(batch.points_sensor, one, equal_nan=True)
     assert np.isinf(one[0, 0]) and np.isnan(one[0, 1]) and one[0, 2] == -np.inf
 
 

@@ -35,7 +35,7 @@ from vehicle_agent.agent import Agent, LaneFollower, timed
 from vehicle_agent.agreement import AgreementConfig, decide, unscheduled_after
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
-from vehicle_agent.guard import Guard
+from vehicle_agent.guard import CTRL_STREAM, Guard
 from vehicle_agent.link import V2VLink
 from vehicle_agent.planning import holds_still
 from vehicle_agent.scheduler import UnknownSchedulerError
@@ -432,7 +432,8 @@ class Pipeline:
         payloads: list[bytes] = []
         if self.scheme in SCHEDULER_OF:
             payloads = self._share(view, scan)
-        fused = agent.fuse(view, payloads) if self.fuses else None
+        drops = self.link.drops if self.link is not None else None  # the process's, which the link counts in
+        fused = agent.fuse(view, payloads, drops) if self.fuses else None
         plan = agent.plan(view, fused, scan)
         cmd = agent.control(plan, scan)
         if self.guard is not None:  # within the tick, so that signing counts in its timings
@@ -475,7 +476,7 @@ class Pipeline:
         with timed(agent.timings_ms, "schedule"):
             decision = decide(self.mission.vid, scan.tick, own, heard, self.agreement)
             for err in decision.malformed.values():  # a group member's object map: not heard after all
-                link.drops.add("ctrl bundle item", err)
+                link.drops.add(CTRL_STREAM, err)
             slots = plan_transmissions(decision, self.agreement)
             self.unscheduled = unscheduled_after(own, [t.object_id for t in slots])
         with timed(agent.timings_ms, "encoding"):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
@@ -22,9 +23,12 @@ from protocol.model import OURS, Model
 from vehicle_agent.control import VehicleController, clip
 from vehicle_agent.dataplane import DataPlane, View
 from vehicle_agent.fusion import FusedGrid
+from vehicle_agent.payload import DATA_STREAM
 from vehicle_agent.perception import exact_inverse
 from vehicle_agent.planning import STATIC_MPS, Obstacles, Plan, Planner
 
+if TYPE_CHECKING:
+    from protocol.session import DropCounter
 
 
 @dataclass
@@ -59,9 +63,14 @@ class Agent:
                 self.planner.intended(scan.pose, scan.speed_mps, scan.t_sim_s)
             return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard, unscheduled)
 
-    def fuse(self, view: View, payloads: list[bytes]) -> FusedGrid:
+    def fuse(self, view: View, payloads: list[bytes], drops: DropCounter | None = None) -> FusedGrid:
+        """``drops``: where a payload that is not one is counted (on ``DATA_STREAM``)."""
         with timed(self.timings_ms, "fusion"):
-            return self.dataplane.fuse(view, payloads)[0]
+            fused, refused = self.dataplane.fuse(view, payloads)
+        if drops is not None:
+            for err in refused:
+                drops.add(DATA_STREAM, err)
+        return fused
 
     def plan(self, view: View, fused: FusedGrid | None, scan: Scan) -> Plan:
         """``fused`` may be None for a vehicle that ``holds_still``: its plan does not read it."""

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from protocol.codec import MalformedMessage
 from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from protocol.model import OURS, Model
 from vehicle_agent.agreement import HeardControl
@@ -379,13 +380,13 @@ class DataPlane:
         self._offered_cache = (view, points, counts)
         return points, counts
 
-    def fuse(self, view: View, payloads: list[bytes]) -> tuple[FusedGrid, int]:
+    def fuse(self, view: View, payloads: list[bytes]) -> tuple[FusedGrid, list[MalformedMessage]]:
         """Merge this interval's receptions (and carried-forward older ones) into the grid.
 
-        Returns the fused grid and how many payloads were malformed and dropped.
+        Returns the fused grid and why each malformed payload was dropped.
         """
         with self._timed("fusion"):
-            batch, bad = decode_objects(payloads)
+            batch, refused = decode_objects(payloads)
             self.received.add_batch(batch)
             spec = self.mission.spec
             self._recent_poses.append(view.pose)
@@ -393,7 +394,7 @@ class DataPlane:
             fused = fused_now(self.received, view.t_sim_s, (batch.sender, batch.object_id), list(self._recent_poses),
                               spec.length_m, spec.width_m, view.grid)
             self.shared_batch = fused.shared
-        return fused, bad
+        return fused, refused
 
     @property
     def shared(self) -> list[SharedObject]:

@@ -21,10 +21,9 @@ from protocol.security import (Credentials, PayloadCheck, Rejections, Signer, Ve
                                fits)
 from protocol.session import DropCounter
 from vehicle_agent.agreement import HeardControl
-from vehicle_agent.payload import header_of
+from vehicle_agent.payload import DATA_STREAM, header_of
 
 CTRL_STREAM = "ctrl bundle item"
-DATA_STREAM = "data bundle item"
 
 
 class Guard:

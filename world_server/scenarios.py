@@ -48,10 +48,10 @@ import numpy as np
 from protocol import plugins
 from protocol.messages import VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
-from world_server.roadmap import RoadMap, intersection, straight_road
+from world_server.roadmap import DOMAIN_RADIUS_M, RoadMap, corridor, intersection, straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-DOMAIN_RADIUS_M = 85.0  # R/2 with R ~ 170 m (urban LTE-Direct), paper section 4.1
+NETWORK_SCENARIOS = ("corridor3",)  # several scheduler domains (docs/domains.md), registered below
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
@@ -408,17 +408,26 @@ def _overtaking(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, [ego, truck, collider, *traffic], conflict, {})
 
 
+@register_scenario("corridor3", time_limit_s=30.0)
+def _corridor3(p: ScenarioParams) -> Scenario:
+    """``left_turn`` at the middle junction ``J1`` of a corridor of three
+    (``roadmap.corridor``: three domains on channels 0, 1, 0). The main road's lights are
+    green at ``J0`` and ``J2`` and red at ``J1``, whose cross street has green; the
+    background drives along the main road through the junctions, across the domains'
+    borders."""
+    m = corridor(3)
+    collider_route = m.route("J1:N.in.1", "J1:N.in.1>S", "J1:S.out.1")
+    ego, collider, conflict = crossing_actors(
+        p, m, m.route("J1:S.in.0", "J1:S.in.0>W", "J1:W.out.0"), collider_route, LEFT_TURN_EGO_KMH)
+    truck = left_turner(m, "J1:N.in.0", m.route("J1:N.in.0", "J1:N.in.0>E", "J1:E.out.0"))
+    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    main_road_green = {0: "red", 2: "red", 1: "green", 3: "green"}  # per junction: S 0, E 1, N 2, W 3
+    lights = {4 * j + k: state for j in (0, 2) for k, state in main_road_green.items()}
+    lights |= {4 + k: "red" if k % 2 else "green" for k in range(4)}  # J1: the cross street has green
+    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
+
+
 # ------------------------------------------------------------------------ background
-
-
-def _lane_continuation(m: RoadMap, lane_id: str) -> np.ndarray:
-    """A lane followed straight on through the intersection, if it leads into one."""
-    if ".in." in lane_id:
-        straight = next(k for k in m.lanes if k.startswith(lane_id + ">") and
-                        k.split(">")[1] == {"S": "N", "N": "S", "E": "W", "W": "E"}[lane_id[0]])
-        arm_out = f"{straight.split('>')[1]}.out.{lane_id[-1]}"
-        return m.route(lane_id, straight, arm_out)
-    return m.lanes[lane_id].centerline
 
 
 def _footprint_circles(xy: np.ndarray, yaw: np.ndarray, spec: VehicleSpec) -> np.ndarray:
@@ -443,6 +452,8 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
     n_needed = p.vehicles - sum(a.connected for a in scenario.actors)
     times = np.arange(0.0, p.duration_s + 1e-9, 0.25)
     kept = [(a, _sweep(a, times)) for a in scenario.actors]
+    centers = m.domain_centers()
+    network = len(centers) > 1  # several domains: the main road's traffic drives on through the junctions
     candidates = []
     for lane_id, lane in m.lanes.items():
         if ">" in lane_id:
@@ -450,11 +461,13 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
         cum = arc_lengths(lane.centerline)
         for s in np.arange(6.0, cum[-1] - 6.0, BACKGROUND_SPACING_M):
             xy, yaw = point_at(lane.centerline, s)
-            rel = xy - m.center
+            rel = xy - centers[np.argmin(np.hypot(*(xy - centers).T))] if network else xy - m.center
             if np.linalg.norm(rel) > DOMAIN_RADIUS_M:
                 continue
             away = float(rel @ np.array([np.cos(yaw), np.sin(yaw)])) > 0
-            moving = away and not lane_id.startswith("P_")
+            light = m.lanes[lane_id].light_id
+            through = network and lane_id in m.straight_on and (light < 0 or scenario.lights.get(light) == "green")
+            moving = (away or through) and not lane_id.startswith("P_")
             candidates.append((lane_id, float(s), moving))
     order = rng.permutation(len(candidates))
     kinds = rng.random(len(candidates)) < TRUCK_SHARE
@@ -464,7 +477,7 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
             break
         lane_id, s, moving = candidates[idx]
         kind = "truck" if kinds[idx] else "car"
-        route = _trim(_lane_continuation(m, lane_id), s)
+        route = _trim(m.through_route(lane_id), s)
         cand = Actor(vid, "background", kind, route, BACKGROUND_SPEED_MPS if moving else 0.0, True)
         sweep = _sweep(cand, times)
         r = cand.spec.width_m / 2
@@ -479,7 +492,7 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
     scenario.actors.sort(key=lambda a: a.vid)
 
 
-assert set(_BUILDERS) == set(SCENARIOS)
+assert set(_BUILDERS) == set(SCENARIOS) | set(NETWORK_SCENARIOS)
 
 __all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Actor", "build", "builder_of", "register_scenario",
            "params_from_dict", "load_scenario_file", "SCENARIOS"]

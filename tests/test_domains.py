@@ -141,3 +141,18 @@ def test_vehicles_that_heard_the_same_messages_of_a_domain_agree_on_its_schedule
         assert sched_a.frames == sched_b.frames
         np.testing.assert_array_equal(inst_a.reward, inst_b.reward)
         np.testing.assert_array_equal(inst_a.p_deliver, inst_b.p_deliver)
+
+
+def test_domain_stats_count_members_handovers_and_collisions():
+    from channel_proxy.domain_stats import summarise
+
+    def interval(members, collided=0):
+        return {"domains": {d: {"channel": int(d) % 2, "members": m,
+                                "data": {"transmissions": 4, "collided_tx": collided, "delivered_bytes": 1000}}
+                            for d, m in members.items()}}
+
+    s = summarise([interval({"0": [1, 2], "1": [3]}), interval({"0": [1, 2], "1": [2, 3]}, 1),
+                   interval({"0": [1], "1": [2, 3]}), {"ctrl": {}}])
+    assert s.intervals == 3 and s.members["0"] == [2, 2, 1] and s.members["1"] == [1, 2, 2]
+    assert s.joins == {"1": 1} and s.leaves == {"0": 1} and s.in_two == 1  # vehicle 2 handed over from 0 to 1
+    assert s.transmissions == {"0": 12, "1": 12} and s.collided == {"0": 1, "1": 1}

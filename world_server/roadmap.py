@@ -32,9 +32,9 @@ CORRIDOR_SPACING_M = 150.0  # between neighbouring junctions: their domains over
 
 # arm name -> rotation (radians) of the "approach from the south, drive north" template
 _ARMS = {"S": 0.0, "E": np.pi / 2, "N": np.pi, "W": 3 * np.pi / 2}
-_LEFT_OF = {"S": "W", "E": "S", "N": "E", "W": "N"}  # turning left from arm X leaves via _LEFT_OF[X]
-_RIGHT_OF = {v: k for k, v in _LEFT_OF.items()}
-_OPPOSITE = {"S": "N", "N": "S", "E": "W", "W": "E"}
+LEFT_OF = {"S": "W", "E": "S", "N": "E", "W": "N"}  # turning left from arm X leaves via LEFT_OF[X]
+RIGHT_OF = {v: k for k, v in LEFT_OF.items()}
+OPPOSITE = {"S": "N", "N": "S", "E": "W", "W": "E"}
 
 
 def _rot(poly: np.ndarray, angle: float) -> np.ndarray:
@@ -118,17 +118,17 @@ def _junction(m: RoadMap, center: tuple[float, float] = (0.0, 0.0), prefix: str 
     for arm, angle in _ARMS.items():
         for k, x in enumerate(xs):
             straight = at(_rot(np.array([[x, -b], [x, b]]), angle))
-            m.add(f"{prefix}{arm}.in.{k}>{_OPPOSITE[arm]}", straight)
-            m.straight_on[f"{prefix}{arm}.in.{k}"] = f"{prefix}{arm}.in.{k}>{_OPPOSITE[arm]}"
-            m.straight_on[f"{prefix}{arm}.in.{k}>{_OPPOSITE[arm]}"] = f"{prefix}{_OPPOSITE[arm]}.out.{k}"
+            m.add(f"{prefix}{arm}.in.{k}>{OPPOSITE[arm]}", straight)
+            m.straight_on[f"{prefix}{arm}.in.{k}"] = f"{prefix}{arm}.in.{k}>{OPPOSITE[arm]}"
+            m.straight_on[f"{prefix}{arm}.in.{k}>{OPPOSITE[arm]}"] = f"{prefix}{OPPOSITE[arm]}.out.{k}"
         # left turn: inner lane onto the inner lane leaving to the left (quarter circle)
         r_left = b + xs[0]
         left = at(_rot(arc((-b, -b), r_left, 0.0, np.pi / 2), angle))
-        m.add(f"{prefix}{arm}.in.0>{_LEFT_OF[arm]}", left)
+        m.add(f"{prefix}{arm}.in.0>{LEFT_OF[arm]}", left)
         # right turn: outer lane onto the outer lane leaving to the right
         r_right = b - xs[1]
         right = at(_rot(arc((b, -b), r_right, np.pi, np.pi / 2), angle))
-        m.add(f"{prefix}{arm}.in.1>{_RIGHT_OF[arm]}", right)
+        m.add(f"{prefix}{arm}.in.1>{RIGHT_OF[arm]}", right)
 
 
 def corridor(n: int = 3, spacing_m: float = CORRIDOR_SPACING_M) -> RoadMap:

@@ -48,7 +48,7 @@ import numpy as np
 from protocol import plugins
 from protocol.messages import VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
-from world_server.roadmap import DOMAIN_RADIUS_M, RoadMap, corridor, intersection, straight_road
+from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, corridor, intersection, straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
 NETWORK_SCENARIOS = ("corridor3",)  # several scheduler domains (docs/domains.md), registered below
@@ -353,18 +353,30 @@ def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m:
     return out
 
 
+def left_turn_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
+    """The left-turn event at a junction (lane ids ``prefix`` + ...): the ego turns left
+    from ``ego_arm``, the opposite left-turning truck, waiting inside the junction, hides
+    the collider coming straight from the opposite arm and the cars that follow it.
+    Returns the actors and the conflict point."""
+    a, o = ego_arm, OPPOSITE[ego_arm]
+    collider_route = m.route(f"{prefix}{o}.in.1", f"{prefix}{o}.in.1>{a}", f"{prefix}{a}.out.1")
+    ego, collider, conflict = crossing_actors(
+        p, m, m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{LEFT_OF[a]}", f"{prefix}{LEFT_OF[a]}.out.0"),
+        collider_route, LEFT_TURN_EGO_KMH)
+    truck = left_turner(m, f"{prefix}{o}.in.0",
+                        m.route(f"{prefix}{o}.in.0", f"{prefix}{o}.in.0>{LEFT_OF[o]}", f"{prefix}{LEFT_OF[o]}.out.0"))
+    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    return [ego, truck, collider, *traffic], conflict
+
+
 @register_scenario("left_turn", time_limit_s=30.0)
 def _left_turn(p: ScenarioParams) -> Scenario:
     """Ego turns left from the south; the opposite left-turning truck, waiting inside the
     junction, hides the oncoming collider and the cars that follow it."""
     m = intersection()
-    collider_route = m.route("N.in.1", "N.in.1>S", "S.out.1")
-    ego, collider, conflict = crossing_actors(
-        p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), collider_route, LEFT_TURN_EGO_KMH)
-    truck = left_turner(m, "N.in.0", m.route("N.in.0", "N.in.0>E", "E.out.0"))
-    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    actors, conflict = left_turn_event(p, m, "S")
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
-    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
+    return Scenario(p, m, actors, conflict, lights)
 
 
 @register_scenario("red_light", time_limit_s=40.0)
@@ -416,15 +428,11 @@ def _corridor3(p: ScenarioParams) -> Scenario:
     background drives along the main road through the junctions, across the domains'
     borders."""
     m = corridor(3)
-    collider_route = m.route("J1:N.in.1", "J1:N.in.1>S", "J1:S.out.1")
-    ego, collider, conflict = crossing_actors(
-        p, m, m.route("J1:S.in.0", "J1:S.in.0>W", "J1:W.out.0"), collider_route, LEFT_TURN_EGO_KMH)
-    truck = left_turner(m, "J1:N.in.0", m.route("J1:N.in.0", "J1:N.in.0>E", "J1:E.out.0"))
-    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    actors, conflict = left_turn_event(p, m, "S", "J1:")
     main_road_green = {0: "red", 2: "red", 1: "green", 3: "green"}  # per junction: S 0, E 1, N 2, W 3
     lights = {4 * j + k: state for j in (0, 2) for k, state in main_road_green.items()}
     lights |= {4 + k: "red" if k % 2 else "green" for k in range(4)}  # J1: the cross street has green
-    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
+    return Scenario(p, m, actors, conflict, lights)
 
 
 # ------------------------------------------------------------------------ background

@@ -105,7 +105,7 @@ class Domain:
     channel: int
 
     INVARIANTS = (within("domain_id", 0, MAX_DOMAINS - 1), within("x_m", -MAP_BOUND_M, MAP_BOUND_M),
-                  within("y_m", -MAP_BOUND_M, MAP_BOUND_M), within("radius_m", 1.0, MAP_BOUND_M),
+                  within("y_m", -MAP_BOUND_M, MAP_BOUND_M), within("radius_m", 0.0, MAP_BOUND_M),
                   within("channel", 0, MAX_DOMAINS - 1))
 
 

@@ -35,7 +35,7 @@ def test_a_map_without_domains_has_the_default_one():
 
 @pytest.mark.parametrize("domains, error", [
     ([Domain(1, 0.0, 0.0, 85.0, 0)], "domain ids not 0, 1"),
-    ([Domain(0, 0.0, 0.0, 0.0, 0)], "radius_m"),
+    ([Domain(0, 0.0, 0.0, -1.0, 0)], "radius_m"),
     ([Domain(0, 5000.0, 0.0, 85.0, 0)], "x_m"),
     ([Domain(0, 0.0, 0.0, 85.0, -1)], "channel"),
 ])

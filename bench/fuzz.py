@@ -206,6 +206,8 @@ def _keep_invariants(fields: dict[str, Any], rnd: random.Random) -> None:
     if isinstance(fields.get("lights"), list):
         fields["lights"] = [light for i, light in enumerate(fields["lights"])
                             if all(light[0] != other[0] for other in fields["lights"][:i])]
+    if "lanes" in fields:  # a map's domains are numbered 0, 1, ... in order
+        fields["domains"] = [[i, *d[1:]] for i, d in enumerate(fields["domains"])]
     if "trajectory" in fields:  # its times do not go back
         traj = np.frombuffer(fields["trajectory"][2], "<f4").reshape(fields["trajectory"][1]).copy()
         traj[:, 2] = np.sort(traj[:, 2])

@@ -134,6 +134,10 @@ class ChannelProxy:
         self._bundles: dict[str, ShmPublisher] = {}
         self._extras: dict[int, list] = {}  # the closed phase's frames beyond each slot's own
         self._awaited: tuple[str, int, set[int]] | None = None  # the phase being collected, whom it waits for
+        # several scheduler domains (docs/domains.md): phase -> tick -> vid -> domain -> (msg, raw, channel)
+        self._dom_inbox: dict[str, dict[int, dict[int, dict[int, tuple]]]] = {p: defaultdict(dict) for p in self._closed}
+        self._dom_want: dict[str, dict[int, dict[int, set[int]]]] = {p: defaultdict(dict) for p in self._closed}
+        self._dom_got: dict[int, dict[int, tuple]] = {}  # the closed phase's frames by vid and domain
         self._entities: list = []
         self._cpu_mark = time.process_time()
 
@@ -148,8 +152,8 @@ class ChannelProxy:
         ]
         if self.cfg.mode == "v2v":
             self._entities += [
-                s.declare_subscriber(keys.net_ctrl_tx(run, "*"), self._inbound("ctrl", ControlMsg)),
-                s.declare_subscriber(keys.net_data_tx(run, "*"), self._inbound("data", DataTx)),
+                s.declare_subscriber(keys.net_ctrl_tx(run, "*", "*", "*"), self._inbound("ctrl", ControlMsg)),
+                s.declare_subscriber(keys.net_data_tx(run, "*", "*", "*"), self._inbound("data", DataTx)),
             ]
             self._bundles = {key: ShmPublisher(s, key, self.cfg.shm_dir)  # undeclared with _pubs
                              for key in (keys.net_ctrl_rx(run), keys.net_data_rx(run))}
@@ -212,7 +216,10 @@ class ChannelProxy:
                 self.drops.add(key, err)
                 return
             relay = self.cfg.relay_extra_frames
+            channel, domain = keys.channel_domain_of(key)
             with self._cv:
+                if self._domain_frame(phase, msg, vid, channel, domain, raw, key):
+                    return
                 if msg.vid != vid and not relay:
                     self.counters.foreign += 1
                     self.drops.add(key, ValueError(f"vid {msg.vid} on vehicle {vid}'s key"))
@@ -246,6 +253,44 @@ class ChannelProxy:
                     extra.append((msg, raw))
 
         return handler
+
+    def _domain_frame(self, phase: str, msg: Any, vid: int, channel: int, domain: int, raw: bytes, key: str) -> bool:
+        """Caller holds ``_cv``. File a frame of a map with several domains (one on a
+        domain's keys, or a control message naming its domains) under (tick, vid,
+        domain); once a vehicle has sent in every domain it takes part in (those its
+        control messages name; in the data phase, those it sent control in), its first
+        frame goes into the phase's inbox, where the lock-step waits for it. Returns
+        False for a frame of a map of one domain, which is filed as always."""
+        named = getattr(msg, "domains", None)
+        want_of = self._dom_want[phase].get(msg.tick, {})
+        if (channel, domain) == (0, 0) and not (named is not None and len(named)) and vid not in want_of:
+            return False
+        if msg.vid != vid:
+            self.counters.foreign += 1
+            self.drops.add(key, ValueError(f"vid {msg.vid} on vehicle {vid}'s key"))
+            return True
+        newest = self._tick.tick if self._tick is not None else -1
+        if msg.tick <= self._closed[phase]:
+            self.counters.late += 1
+            return True
+        if msg.tick > newest + FUTURE_TICKS:
+            self.drops.add(key, ValueError(f"tick {msg.tick} is far ahead of the world's {newest}"))
+            return True
+        frames = self._dom_inbox[phase][msg.tick].setdefault(vid, {})
+        if domain in frames:
+            self.counters.duplicate += 1
+            return True
+        frames[domain] = (msg, raw, channel)
+        if phase == "ctrl":
+            want = self._dom_want[phase][msg.tick].setdefault(vid, {int(d) for d in named} if named is not None else set())
+        else:
+            want = want_of.get(vid, {domain})
+        box = self._inbox[phase][msg.tick]
+        if want <= set(frames) and vid not in box:
+            first = frames[min(frames)]
+            box[vid] = (first[0], first[1])
+            self._filed(phase, msg.tick, vid)
+        return True
 
     def _filed(self, phase: str, k: int, vid: int) -> None:
         """Caller holds ``_cv``: ``vid``'s own message for ``phase`` of tick ``k`` is in.
@@ -323,6 +368,11 @@ class ChannelProxy:
             self._awaited = None
             self._closed[phase] = max(self._closed[phase], k)
             got = self._inbox[phase].pop(k, {})
+            self._dom_got = self._dom_inbox[phase].pop(k, {})
+            for t in [t for t in self._dom_inbox[phase] if t <= k]:
+                self.counters.late += sum(map(len, self._dom_inbox[phase].pop(t).values()))
+            for t in [t for t in self._dom_want[phase] if t <= k]:
+                del self._dom_want[phase][t]
             self._extras = {v: frames for v, frames in self._extra[phase].pop(k, {}).items() if frames}
             self.counters.extra_frames += sum(map(len, self._extras.values()))
             for t in [t for t in self._inbox[phase] if t <= k]:
@@ -395,6 +445,9 @@ class ChannelProxy:
         absent_ctrl = self._account(expected, set(ctrl))
         for vid, (msg, _) in ctrl.items():
             self._last_xy[vid] = (msg.pose.x_m, msg.pose.y_m)
+        if self._dom_got:
+            self._play_domains(tick, t_open, live, absent_ctrl, t_work)
+            return
         d = loss.distances(self._positions(live))  # once for the range and both channels' p
         reach = loss.within_cutoff(d, profile.prr)
         p_ctrl = loss.probabilities_at(d, profile.prr, self.cfg.ctrl_loss)
@@ -524,6 +577,123 @@ class ChannelProxy:
                         twins.append(t)
                         out.append(Reception(vid, tx.object_id, float(rx_s[t]), tx.payload))
         return twins, out
+
+    # ------------------------------------------------------------------ several domains
+
+    def _play_domains(self, tick: Tick, t_open: float, live: np.ndarray, absent_ctrl: list[int],
+                      t_work: float) -> None:
+        """One interval of a map with several scheduler domains (docs/domains.md): each
+        radio channel is its own medium, shared by the domains on it. A vehicle hears a
+        channel only if it takes part in a domain on it (it sent its control message
+        there); collisions happen only within a channel, across its domains too; every
+        domain gets its own bundles (its members as receivers) and statistics. A vehicle
+        in two domains has a radio for each (paper 4.1)."""
+        k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        live_set = set(live.tolist())
+        ctrl = {v: f for v, f in self._dom_got.items() if v in live_set}
+        for vid, frames in ctrl.items():
+            msg = frames[min(frames)][0]
+            self._last_xy[vid] = (msg.pose.x_m, msg.pose.y_m)
+        d = loss.distances(self._positions(live))
+        reach = loss.within_cutoff(d, profile.prr)
+        p_ctrl = loss.probabilities_at(d, profile.prr, self.cfg.ctrl_loss)
+        p_data = p_ctrl if self.cfg.data_loss == self.cfg.ctrl_loss else \
+            loss.probabilities_at(d, profile.prr, self.cfg.data_loss)
+        with self._cv:  # before any bundle goes out: a vehicle's data frames then wait for all of its domains
+            self._dom_want["data"][k] = {v: set(f) for v, f in ctrl.items()}
+        channel_of = {dom: f[2] for frames in ctrl.values() for dom, f in frames.items()}
+        members = {dom: np.array(sorted(v for v, f in ctrl.items() if dom in f), dtype=np.int64) for dom in channel_of}
+        stats: dict[str, Any] = {"domains": {}}
+        for ch in sorted(set(channel_of.values())):
+            doms = sorted(dom for dom, c in channel_of.items() if c == ch)
+            slots = [(dom, int(v)) for dom in doms for v in members[dom]]
+            sizes = np.array([_ctrl_onair(ctrl[v][dom][0]) for dom, v in slots], dtype=np.int64)
+            s_idx = np.searchsorted(live, np.array([v for _, v in slots], dtype=np.int64))
+            out = medium.play_control(live, s_idx, sizes, p_ctrl, reach, capacity_bytes=profile.ctrl_capacity_bytes,
+                                      seed=self.cfg.seed, tick=k)
+            for dom in doms:
+                cols = np.array([i for i, (dd, _) in enumerate(slots) if dd == dom], dtype=np.int64)
+                rows = np.searchsorted(live, members[dom])
+                heard = np.ascontiguousarray(out.heard[cols][:, rows].T)
+                frames = [ctrl[v][dom][1] for v in members[dom].tolist()]
+                self._bundle(keys.net_ctrl_rx(run, ch, dom)).put(
+                    k, tick.t_sim_s, encode(CtrlBundle(k, tick.t_sim_s, members[dom], members[dom], heard, frames)))
+                stats["domains"][str(dom)] = {"channel": ch, "members": members[dom].tolist(), "ctrl": {
+                    "senders": len(cols), "offered_bytes": int(sizes[cols].sum()),
+                    "overflow_msgs": int(out.overflow[cols].sum()), "delivered_pairs": int(heard.sum())}}
+        phases.mark("proxy.ctrl_bundle_sent", k)
+        ctrl_work_s = time.perf_counter() - t_work
+        data = self._collect("data", k, set(ctrl), self._deadline(t_open, self.cfg.data_deadline_s))
+        t_work = time.perf_counter() - ctrl_work_s
+        data = self._only_live(data, live)
+        absent_data = self._account(set(ctrl), set(data))
+        sent = {v: f for v, f in self._dom_got.items() if v in live_set}
+        for ch in sorted(set(channel_of.values())):
+            self._play_channel_data(tick, live, p_data, reach, ch, sorted(d for d, c in channel_of.items() if c == ch),
+                                    members, sent, stats["domains"])
+        stats["ctrl"] = {"senders": len(ctrl), "absent": absent_ctrl}
+        stats["data"] = {"absent": absent_data,
+                         **{key: sum(s["data"][key] for s in stats["domains"].values())
+                            for key in ("transmissions", "offered_bytes", "collided_tx", "delivered_pairs",
+                                        "delivered_bytes")},
+                         "objects": [o for s in stats["domains"].values() for o in s["data"].pop("objects")]}
+        self._publish_stats(tick, stats, t_work)
+        self._done_tick = k
+
+    def _play_channel_data(self, tick: Tick, live: np.ndarray, p: np.ndarray, reach: np.ndarray, ch: int,
+                           doms: list[int], members: dict[int, np.ndarray], sent: dict[int, dict[int, tuple]],
+                           stats: dict[str, Any]) -> None:
+        """The data channel ``ch``: every transmission of its domains on one medium,
+        heard by the vehicles tuned to it; each domain's receptions to its members."""
+        k, profile, run = tick.tick, self.cfg.profile, self.cfg.run_id
+        txs: list[tuple[int, int, Any]] = []
+        for dom in doms:
+            for vid in sorted(sent):
+                if dom in sent[vid]:
+                    for t in sent[vid][dom][0].transmissions:
+                        if math.isfinite(t.start_s) and t.start_s >= 0.0:
+                            txs.append((dom, vid, t))
+                        else:
+                            self.counters.invalid_tx += 1
+        sender = np.searchsorted(live, np.array([v for _, v, _ in txs], dtype=np.int64))
+        item = np.array([t.object_id for _, _, t in txs], dtype=np.int64)
+        size = np.array([len(t.payload) for _, _, t in txs], dtype=np.int64)
+        start = np.array([t.start_s for _, _, t in txs], dtype=np.float64)
+        out = medium.play_data(live, sender, item, start, size, p, reach, bandwidth_bps=profile.bandwidth_bps,
+                               interval_s=profile.decision_interval_s, seed=self.cfg.seed, tick=k)
+        tuned = np.isin(live, np.concatenate([members[dom] for dom in doms]))
+        delivered = out.delivered & tuned[None, :]
+        rx_s = out.end_ns / medium.NS
+        dom_of = np.array([dom for dom, _, _ in txs], dtype=np.int64)
+        sender_vid = live[sender] if len(txs) else sender
+        for dom in doms:
+            rows = np.searchsorted(live, members[dom])
+            mine = np.flatnonzero(dom_of == dom)
+            decoded = delivered[mine][:, rows]
+            order = np.lexsort((item[mine], sender_vid[mine], out.end_ns[mine]))
+            order = order[decoded[order].any(axis=1)]
+            receptions = [_reception(int(sender_vid[mine[t]]), int(item[mine[t]]), float(rx_s[mine[t]]),
+                                     txs[mine[t]][2].payload) for t in order.tolist()]
+            bundle = DataBundle(k, tick.t_sim_s, members[dom], np.ascontiguousarray(decoded[order].T), receptions)
+            self._bundle(keys.net_data_rx(run, ch, dom)).put(k, tick.t_sim_s, encode(bundle))
+            n_delivered = delivered[mine].sum(axis=1)
+            stats[str(dom)]["data"] = {
+                "transmissions": len(mine), "offered_bytes": int(size[mine].sum()),
+                "overflow_tx": int(out.overflow[mine].sum()),
+                "collided_tx": int((out.collided[mine].sum(axis=1) > 0).sum()),
+                "delivered_pairs": int(n_delivered.sum()), "delivered_bytes": int((n_delivered * size[mine]).sum()),
+                "channel_utilization": round(out.busy_ns / (profile.decision_interval_s * medium.NS), 4),
+                "objects": [[int(sender_vid[t]), int(item[t]), round(float(out.start_ns[t] / medium.NS), 6),
+                             round(float(rx_s[t]), 6), int(n_delivered[i]), int(out.in_range[t].sum())]
+                            for i, t in enumerate(mine.tolist()) if not out.overflow[t]]}
+        phases.mark("proxy.data_bundle_sent", k)
+
+    def _bundle(self, key: str) -> ShmPublisher:
+        """The bundle publisher of ``key``, declared at its first bundle (a domain's keys)."""
+        pub = self._bundles.get(key)
+        if pub is None:
+            pub = self._bundles[key] = self._pubs[key] = ShmPublisher(self.session, key, self.cfg.shm_dir)
+        return pub
 
     # ------------------------------------------------------------------ EMP
 

@@ -67,23 +67,50 @@ def alive(run: str, vid: int | str) -> str:
     return f"{_run(run)}/alive/v/{_vid(vid)}"
 
 
-def net_ctrl_tx(run: str, vid: int | str) -> str:
-    """A vehicle's control message, into the channel proxy."""
-    return f"{_run(run)}/net/ctrl/tx/{_vid(vid)}"
+def _net(run: str, channel: int | str, domain: int | str) -> str:
+    """``ac/<run>/net`` for domain 0 on channel 0 (every map of one domain: a run's keys
+    as they always were), ``ac/<run>/net/c<channel>/d<domain>`` for any other domain,
+    ``ac/<run>/net/**`` for every domain (either one ``"*"``)."""
+    if channel == "*" or domain == "*":
+        return f"{_run(run)}/net/**"
+    for name, value in (("channel", channel), ("domain", domain)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise ValueError(f"{name} {value!r}: a non-negative int or '*'")
+    if channel == 0 and domain == 0:
+        return f"{_run(run)}/net"
+    return f"{_run(run)}/net/c{channel}/d{domain}"
 
 
-def net_ctrl_rx(run: str) -> str:
-    """Who heard which control message, out of the channel proxy (one for all receivers)."""
-    return f"{_run(run)}/net/ctrl/rx"
+def net_ctrl_tx(run: str, vid: int | str, channel: int | str = 0, domain: int | str = 0) -> str:
+    """A vehicle's control message in a scheduler domain, into the channel proxy."""
+    return f"{_net(run, channel, domain)}/ctrl/tx/{_vid(vid)}"
 
 
-def net_data_tx(run: str, vid: int | str) -> str:
-    return f"{_run(run)}/net/data/tx/{_vid(vid)}"
+def net_ctrl_rx(run: str, channel: int | str = 0, domain: int | str = 0) -> str:
+    """Who heard which control message of a domain, out of the channel proxy (one for all receivers)."""
+    return f"{_net(run, channel, domain)}/ctrl/rx"
 
 
-def net_data_rx(run: str) -> str:
-    """Who decoded which object payload, out of the channel proxy (one for all receivers)."""
-    return f"{_run(run)}/net/data/rx"
+def net_data_tx(run: str, vid: int | str, channel: int | str = 0, domain: int | str = 0) -> str:
+    return f"{_net(run, channel, domain)}/data/tx/{_vid(vid)}"
+
+
+def net_data_rx(run: str, channel: int | str = 0, domain: int | str = 0) -> str:
+    """Who decoded which object payload of a domain, out of the channel proxy (one for all receivers)."""
+    return f"{_net(run, channel, domain)}/data/rx"
+
+
+def channel_domain_of(key: str) -> tuple[int, int]:
+    """The (channel, domain) of a ``net`` key: (0, 0) for the plain keys."""
+    parts = str(key).split("/")
+    try:
+        at = parts.index("net") + 1
+    except ValueError:
+        raise ValueError(f"no net key: {key!r}") from None
+    ch, dom = (parts[at:at + 2] + ["", ""])[:2]
+    if ch[:1] == "c" and dom[:1] == "d" and ch[1:].isdigit() and dom[1:].isdigit():
+        return int(ch[1:]), int(dom[1:])
+    return 0, 0
 
 
 def net_stats(run: str) -> str:

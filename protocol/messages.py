@@ -31,6 +31,7 @@ MAX_WAYPOINTS = 1024
 MAX_ITEMS = 1 << 16  # transmissions, receptions, segments, lanes: far beyond any run's
 MAX_RANGE_IMAGE = (1 << 14, 1 << 10)  # azimuth steps, beams
 PUBLIC_KEY_BYTES, SIGNATURE_BYTES = 32, 64
+MAX_DOMAINS = 256  # scheduler domains of one map, and radio channels
 
 # ---------------------------------------------------------------------------- records
 
@@ -92,6 +93,26 @@ class TrafficLight:
 
 
 @record
+class Domain:
+    """A scheduler domain declared in the map (paper 4.1): the vehicles within
+    ``radius_m`` of its centre schedule together on radio channel ``channel``;
+    neighbouring domains use different channels (docs/domains.md)."""
+
+    domain_id: int
+    x_m: float
+    y_m: float
+    radius_m: float
+    channel: int
+
+    INVARIANTS = (within("domain_id", 0, MAX_DOMAINS - 1), within("x_m", -MAP_BOUND_M, MAP_BOUND_M),
+                  within("y_m", -MAP_BOUND_M, MAP_BOUND_M), within("radius_m", 0.0, MAP_BOUND_M),
+                  within("channel", 0, MAX_DOMAINS - 1))
+
+
+DEFAULT_DOMAIN = Domain(0, 0.0, 0.0, 85.0, 0)  # R/2 with R ~ 170 m (urban LTE-Direct), paper 4.1
+
+
+@record
 class LightState:
     light_id: int
     state: str  # "red" | "yellow" | "green"
@@ -114,9 +135,16 @@ class VehicleSpec:
 # ---------------------------------------------------------------------------- messages
 
 
-@message(1)
+def _no_domains() -> list:
+    return []
+
+
+@message(1, version=2)
 class MapMsg:
-    """The road map, served once to each agent (the paper assumes a shared 3-D map)."""
+    """The road map, served once to each agent (the paper assumes a shared 3-D map).
+
+    ``domains``: the scheduler domains the map declares (version 2 added them); none
+    means the one domain of R/2 around the origin on channel 0 (``scheduler_domains``)."""
 
     tick: int
     t_sim_s: float
@@ -125,11 +153,19 @@ class MapMsg:
     drivable: list[Annotated[np.ndarray, Array("<f8", (None, 2))]]  # polygons; their union is drivable
     lights: list[TrafficLight]
     buildings: Annotated[np.ndarray, Array("<f8", (None, 6))]  # static prisms [cx, cy, yaw, length, width, height]
+    domains: list[Domain] = field(default_factory=_no_domains)
 
     INVARIANTS = (*STAMPED, at_most("lanes", MAX_ITEMS), at_most("drivable", MAX_ITEMS),
                   each("drivable", within("polygon", -MAP_BOUND_M, MAP_BOUND_M)), Invariant(
                       ("lights",), lambda v: None if len({x.light_id for x in v}) == len(v) else "a light id twice"),
-                  within("buildings", -MAP_BOUND_M, MAP_BOUND_M, slice(0, 2)), *finite("buildings"))
+                  within("buildings", -MAP_BOUND_M, MAP_BOUND_M, slice(0, 2)), *finite("buildings"),
+                  at_most("domains", MAX_DOMAINS), Invariant(
+                      ("domains",), lambda v: None if [d.domain_id for d in v] == list(range(len(v)))
+                      else "domain ids not 0, 1, ... in order"))
+
+    def scheduler_domains(self) -> list[Domain]:
+        """The declared domains, or the one default domain (R/2 around the origin, channel 0)."""
+        return list(self.domains) or [DEFAULT_DOMAIN]
 
 
 @message(2)
@@ -292,7 +328,7 @@ def _no_digests() -> np.ndarray:
     return np.zeros((0, DIGEST_BYTES), dtype=np.uint8)
 
 
-@message(7, version=4)
+@message(7, version=5)
 class ControlMsg:
     """One vehicle's control message for a decision interval (paper 4.1).
 
@@ -308,7 +344,12 @@ class ControlMsg:
     sender and interval (docs/security.md). Empty when the run does not sign. Version 3
     added it; it is not on air (``medium.control_onair_bytes`` counts the map only).
     Version 4 packs the object map's two tables (``ObjectMap``): the same values, ~3x
-    fewer bytes; what is on air is counted from the map's dimensions, as before."""
+    fewer bytes; what is on air is counted from the map's dimensions, as before.
+
+    ``domains``: every scheduler domain its sender takes part in this interval, ascending
+    (it sends one control message in each, on that domain's keys); empty in a map of
+    one domain. The channel proxy closes a vehicle's control phase once it has all of
+    them (docs/domains.md). Version 5 added it; it is not on air."""
 
     tick: int
     t_sim_s: float
@@ -320,12 +361,14 @@ class ControlMsg:
     heard: Annotated[np.ndarray, Array("<i8", (None,))]  # the senders whose control messages this vehicle heard last interval
     unscheduled: Annotated[np.ndarray, Array("<i8", (None,))] = field(default_factory=_no_counts)  # (n,) or (0,): m per object
     digests: Annotated[np.ndarray, Array("|u1", (None, DIGEST_BYTES))] = field(default_factory=_no_digests)  # (n or 0, 16)
+    domains: Annotated[np.ndarray, Array("<i8", (None,))] = field(default_factory=_no_counts)  # domain ids, or (0,)
 
     INVARIANTS = (*STAMPED, *vid("vid"), within("speed_mps", -MAX_SPEED_MPS, MAX_SPEED_MPS),
                   at_most("trajectory", MAX_WAYPOINTS), waypoints("trajectory"), ascending("heard"),
                   same_rows("unscheduled", "objects", lambda o: o.object_id, or_none=True),
                   within("unscheduled", 0, MAX_TICK),
-                  same_rows("digests", "objects", lambda o: o.object_id, or_none=True))
+                  same_rows("digests", "objects", lambda o: o.object_id, or_none=True),
+                  ascending("domains", 0, MAX_DOMAINS - 1))
 
     def starvation(self) -> np.ndarray:
         """int64 (n,): m of every object of the map; zeros if none was reported or the

@@ -443,7 +443,7 @@ def test_a_fields_decoder_by_hand():
     body[9] = ["<i4", [2], b"\0" * 8]  # heard of the wrong dtype
     with pytest.raises(MalformedMessage, match=r"^ControlMsg\.heard: expected int64"):
         read(msgpack.packb(body))
-    with pytest.raises(MalformedMessage, match=r"^ControlMsg needs 10 fields"):
+    with pytest.raises(MalformedMessage, match=r"^ControlMsg needs 11 fields"):
         read(msgpack.packb(body[:-1]))
     with pytest.raises(MalformedMessage, match=r"^not msgpack"):
         read(raw[:-3])
@@ -565,7 +565,7 @@ def test_an_array_field_is_written_or_refused_as_the_checked_path_does(field, va
     object.__setattr__(msg, field, value)
     spec = codec.array_spec(dict(codec._hints(ControlMsg))[field])
     try:
-        want = ("ok", msgpack.packb([7, 4] + [codec._checked_array_to_wire(spec, value, f"ControlMsg.{field}")
+        want = ("ok", msgpack.packb([7, ControlMsg.VERSION] + [codec._checked_array_to_wire(spec, value, f"ControlMsg.{field}")
                                               if name == field else codec._to_wire(getattr(msg, name))
                                               for name, _ in codec._hints(ControlMsg)], use_bin_type=True))
     except TypeError as exc:

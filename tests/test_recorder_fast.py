@@ -157,7 +157,7 @@ def test_a_control_message_by_hand():
         b'{"tick":4,"t_sim_s":0.4,"vid":2,"pose":{"x_m":1.0,"y_m":-2.5,"yaw_rad":0.125},"speed_mps":3.0,'
         b'"trajectory":[[0.1,0.2,0.5]],"objects":{"object_id":[7],"size_bytes":[120],"centroid_xy":[[1.5,-2.25]],'
         b'"receivers":[3,4],"visibility_shape":[1,2],"relevance_shape":[1,2]},"heard":[1,3],"unscheduled":[],'
-        b'"digests":[]}')
+        b'"digests":[],"domains":[]}')
 
 
 # ------------------------------------------------------------------ peek_envelope

@@ -35,6 +35,7 @@ from vehicle_agent.agent import Agent, LaneFollower, timed
 from vehicle_agent.agreement import AgreementConfig, decide, unscheduled_after
 from vehicle_agent.agreement import plan as plan_transmissions
 from vehicle_agent.frames import scan_to_world
+from vehicle_agent.domains import schedule_domains
 from vehicle_agent.guard import CTRL_STREAM, Guard
 from vehicle_agent.link import V2VLink
 from vehicle_agent.planning import holds_still
@@ -151,7 +152,7 @@ def serve(session, args: argparse.Namespace, stop: threading.Event) -> int:
     report_pub = reliable_publisher(session, keys.report(run, vid)) if mission.role == "ego" else None
     link = None if args.scheme in ("single", "lane") else \
         V2VLink(session, run, vid, drops, stop, receives_data=fuses(mission, report_pub is not None),
-                shm_dir=args.shm_dir, missed=missed)
+                shm_dir=args.shm_dir, missed=missed, channels=[d.channel for d in mapmsg.scheduler_domains()])
     guard = None
     if args.credentials is not None:  # the host's receivers share verified signatures (tmpfs if the run has it)
         guard = Guard(args.credentials, drops, Verdicts.open(args.shm_dir or args.credentials_dir))
@@ -400,6 +401,11 @@ class Pipeline:
         self.emp_held: dict[int, tuple[float, np.ndarray]] = {}  # EMP: each sender's last segment (time, points)
         self.heard: list[int] = []
         self.unscheduled: dict[int, int] = {}  # m of our objects, reported in our next control message
+        self.heard_in: dict[int, list[int]] = {}  # several domains: our ballot in each domain we take part in
+        self.unscheduled_in: dict[int, dict[int, int]] = {}  # ... and the m of our objects there
+        self.domains_taken: list[tuple[int, ...]] = []  # several domains: the ones we took part in, per tick
+        if guard is not None and len(self.agent.dataplane.domains) > 1:
+            raise ValueError("a signed run (--sign) of a map with several scheduler domains is not supported")
         self.emp_sites: dict[int, np.ndarray] = {}
         self.report = report
         self.fuses = fuses(mission, report is not None)
@@ -431,7 +437,8 @@ class Pipeline:
         view = agent.perceive(scan, extra)
         payloads: list[bytes] = []
         if self.scheme in SCHEDULER_OF:
-            payloads = self._share(view, scan)
+            several = len(agent.dataplane.domains) > 1
+            payloads = self._share_domains(view, scan) if several else self._share(view, scan)
         drops = self.link.drops if self.link is not None else None  # the process's, which the link counts in
         fused = agent.fuse(view, payloads, drops) if self.fuses else None
         plan = agent.plan(view, fused, scan)
@@ -489,6 +496,38 @@ class Pipeline:
             return [r.payload for r in received]
         with timed(agent.timings_ms, "security"):
             return guard.payloads(received, check, bundle)
+
+    def _share_domains(self, view, scan: Scan) -> list[bytes]:
+        """``_share`` in every scheduler domain the vehicle takes part in (docs/domains.md):
+        a control message in each, each domain's schedule from that domain's messages
+        alone (the agreement rule, unchanged, per domain), our slots in each on its
+        channel, and what we decoded in all of them. A domain we just joined starts with
+        an empty ballot, so we are its member from our second interval there, as any
+        newcomer."""
+        agent, link, vid = self.agent, self.link, self.mission.vid
+        domains = agent.dataplane.domains.membership(scan.pose.x_m, scan.pose.y_m)
+        self.domains_taken.append(domains)
+        self.heard_in = {d: self.heard_in.get(d, []) for d in domains}
+        self.unscheduled_in = {d: self.unscheduled_in.get(d, {}) for d in domains}
+        own = agent.control_messages(view, scan, self.heard_in, self.unscheduled_in, domains)
+        with timed(agent.timings_ms, "link"):
+            heard = link.exchange_controls(own)
+        for d in domains:
+            self.heard_in[d] = sorted(m.vid for m in heard[d])
+            agent.dataplane.neighbors.update(heard[d])
+        with timed(agent.timings_ms, "schedule"):
+            decided = schedule_domains(vid, scan.tick, own, heard, self.agreement)
+            slots = {d: mine for d, (_, mine) in decided.items()}
+            for d, (decision, mine) in decided.items():
+                for err in decision.malformed.values():
+                    link.drops.add("ctrl bundle item", err)
+                self.unscheduled_in[d] = unscheduled_after(own[d], [t.object_id for t in mine])
+        with timed(agent.timings_ms, "encoding"):
+            blobs = agent.dataplane.payloads(view, sorted({t.object_id for d in domains for t in slots[d]}))
+            txs = {d: [Transmission(t.object_id, t.start_s, blobs[t.object_id]) for t in slots[d]] for d in domains}
+        with timed(agent.timings_ms, "link"):
+            received = link.exchange_datas(scan.tick, scan.t_sim_s, txs, receive=self.fuses)
+        return [r.payload for r in received]
 
     def _emp(self, scan: Scan) -> np.ndarray | None:
         """Upload our Voronoi segment of the scan; return the relay's segments' points

@@ -59,9 +59,18 @@ class Agent:
         """What this vehicle broadcasts: pose, planned trajectory, object map, and the
         starvation counter of each of its objects."""
         with timed(self.timings_ms, "spatial_reasoning"):
-            traj = self.last_plan.trajectory if self.last_plan is not None else \
-                self.planner.intended(scan.pose, scan.speed_mps, scan.t_sim_s)
-            return self.dataplane.control_message(view, scan, _retimed(traj, scan.t_sim_s), heard, unscheduled)
+            return self.dataplane.control_message(view, scan, self._trajectory(scan), heard, unscheduled)
+
+    def control_messages(self, view: View, scan: Scan, heard: Mapping[int, list[int]],
+                         unscheduled: Mapping[int, Mapping[int, int]], domains: tuple[int, ...]) -> dict[int, ControlMsg]:
+        """``control_message`` in each scheduler domain the vehicle takes part in (docs/domains.md)."""
+        with timed(self.timings_ms, "spatial_reasoning"):
+            return self.dataplane.control_messages(view, scan, self._trajectory(scan), heard, unscheduled, domains)
+
+    def _trajectory(self, scan: Scan) -> np.ndarray:
+        traj = self.last_plan.trajectory if self.last_plan is not None else \
+            self.planner.intended(scan.pose, scan.speed_mps, scan.t_sim_s)
+        return _retimed(traj, scan.t_sim_s)
 
     def fuse(self, view: View, payloads: list[bytes], drops: DropCounter | None = None) -> FusedGrid:
         """``drops``: where a payload that is not one is counted (on ``DATA_STREAM``)."""

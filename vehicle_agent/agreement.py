@@ -242,11 +242,11 @@ class HeardControl:
         ``decode`` would. The fields ``read`` took from ``raw`` are not read again: only
         the rest is (most of a decode's time was the object map, but not all)."""
         try:
-            objects, unscheduled, digests = decode_fields(self.raw, ControlMsg, _REST)
+            objects, unscheduled, digests, domains = decode_fields(self.raw, ControlMsg, _REST)
         except MalformedMessage:
             return decode(self.raw, ControlMsg)  # refused again, in decode's words
         return _new_control(self.tick, self.t_sim_s, self.vid, self.pose, self.speed_mps, self.trajectory, objects,
-                            self.heard, unscheduled, digests)
+                            self.heard, unscheduled, digests, domains)
 
 
 _read_heard = fields_decoder(ControlMsg, HeardControl.FIELDS, HeardControl)  # one generated function a message

@@ -17,9 +17,10 @@ import numpy as np
 from numba import njit
 
 from protocol.codec import MalformedMessage
-from protocol.messages import ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
+from protocol.messages import DEFAULT_DOMAIN, ControlMsg, MapMsg, Mission, ObjectMap, Pose, Scan
 from protocol.model import OURS, Model
 from vehicle_agent.agreement import HeardControl
+from vehicle_agent.domains import GUARD_BAND_M, DomainTable
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fused_now
@@ -29,9 +30,8 @@ from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid
 from vehicle_agent.spatial import match_vehicles, relevance, visible
 from vehicle_agent.tracking import STILL_MPS, Track, Tracker
 
-DOMAIN_CENTER_XY = (0.0, 0.0)  # the scheduler domain: around the scene's intersection / centre
-DOMAIN_RADIUS_M = 85.0  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
-GUARD_BAND_M = 1.8  # 40 mph for one T_d
+DOMAIN_CENTER_XY = (DEFAULT_DOMAIN.x_m, DEFAULT_DOMAIN.y_m)  # a map's domain when it declares none
+DOMAIN_RADIUS_M = DEFAULT_DOMAIN.radius_m  # R/2, R ~ 170 m urban LTE-Direct (paper 4.1)
 TRAJECTORY_HORIZON_S = 8.0  # as far as others judge relevance (spatial.HORIZON_S)
 TRAJECTORY_STEP_S = 1.0  # the shared trajectory is down-sampled to 1 s segments
 DEFAULT_DIMS = (4.5, 1.8)  # a car, for other vehicles' bodies
@@ -70,11 +70,15 @@ class Neighbors:
     def trajectory(self, i: int) -> np.ndarray:
         return self.waypoints[self.starts[i]:self.starts[i + 1]]
 
-    def in_domain(self) -> Neighbors:
-        """``self.take(in_domain(self.xy))`` in one kernel call (``_take_in_domain``)."""
+    def in_domain(self, center: np.ndarray | None = None, limit_m: np.ndarray | None = None) -> Neighbors:
+        """``self.take(in_domain(self.xy))`` in one kernel call (``_take_in_domain``): the
+        rows within ``limit_m[d]`` of ``center[d]`` for some domain d (default: the one
+        default domain and its guard band)."""
+        if center is None:
+            center = np.array([DOMAIN_CENTER_XY], dtype=np.float64)
+            limit_m = np.array([DOMAIN_RADIUS_M + GUARD_BAND_M])
         whole, vid, xy, waypoints, starts, fresh = _take_in_domain(
-            self.vid, self.xy, self.waypoints, self.starts, self.fresh, DOMAIN_CENTER_XY[0], DOMAIN_CENTER_XY[1],
-            DOMAIN_RADIUS_M + GUARD_BAND_M)
+            self.vid, self.xy, self.waypoints, self.starts, self.fresh, center, limit_m)
         return self if whole else Neighbors(vid, xy, waypoints, starts, fresh)
 
     def take(self, keep: np.ndarray) -> Neighbors:
@@ -125,12 +129,16 @@ class NeighborTable:
 
 
 @njit(cache=True)
-def _take_in_domain(vid, xy, waypoints, starts, fresh, cx, cy, limit):
-    """``in_domain`` (np.hypot of the offsets from the centre, within ``limit``) of every
-    row, and whether all are; if not, the rows kept (``Neighbors.take``'s arrays)."""
-    keep = np.empty(len(vid), dtype=np.bool_)
+def _take_in_domain(vid, xy, waypoints, starts, fresh, center, limit):
+    """``in_domain`` (np.hypot of the offsets from a centre ``center[d]``, within
+    ``limit[d]``, for some d) of every row, and whether all are; if not, the rows kept
+    (``Neighbors.take``'s arrays)."""
+    keep = np.zeros(len(vid), dtype=np.bool_)
     for i in range(len(vid)):
-        keep[i] = np.hypot(xy[i, 0] - cx, xy[i, 1] - cy) <= limit
+        for d in range(len(limit)):
+            if np.hypot(xy[i, 0] - center[d, 0], xy[i, 1] - center[d, 1]) <= limit[d]:
+                keep[i] = True
+                break
     n = keep.sum()
     if n == len(vid):
         return True, vid, xy, waypoints, starts, fresh
@@ -217,6 +225,7 @@ def _place(waypoints, starts, pose_xy, fresh, t_now_s):
 
 
 def in_domain(xy: np.ndarray) -> np.ndarray:
+    """Whether each position is within the default domain and its guard band."""
     return np.hypot(xy[..., 0] - DOMAIN_CENTER_XY[0], xy[..., 1] - DOMAIN_CENTER_XY[1]) <= DOMAIN_RADIUS_M + GUARD_BAND_M
 
 
@@ -247,6 +256,7 @@ class DataPlane:
         self.lanes = LaneDirections(mapmsg.lanes)
         self.received = ReceivedStore(max_age_s=model.hold_s)
         self.neighbors = NeighborTable()
+        self.domains = DomainTable.of(mapmsg)
         self.relevance_mode = relevance_mode
         self.timings_ms: dict[str, float] = {}
         self.shared_batch = SharedBatch.of([])  # this interval's received objects, placed, ourselves excluded
@@ -283,14 +293,15 @@ class DataPlane:
 
     # ----------------------------------------------------------------- reason
 
-    def object_map(self, view: View, neighbors: Neighbors) -> ObjectMap:
-        """v and r of every tracked object for every other vehicle of the domain. The
+    def object_map(self, view: View, neighbors: Neighbors, domains: tuple[int, ...] = (0,)) -> ObjectMap:
+        """v and r of every tracked object for every other vehicle of the ``domains``. The
         tracks' fields are gathered once, and the footprints (``corners_of``'s), the
         own body (``_box_corners``'), the vehicles' own objects (``match_vehicles``) and
         the objects' dims and headings (``Track.heading_rad``) are worked out from them
         with the same operations, in a few calls instead of a few per track."""
         tracks = view.tracks
-        receivers = neighbors.in_domain()
+        rows = list(domains)
+        receivers = neighbors.in_domain(self.domains.center[rows], self.domains.limit_m[rows])
         dets = [t.detection for t in tracks]
         ids = np.array([t.track_id for t in tracks], dtype=np.int64)
         sizes = payload_size(self._offered(view)[1], self.model.bytes_per_point)
@@ -322,13 +333,39 @@ class DataPlane:
     def control_message(self, view: View, scan: Scan, trajectory: np.ndarray, heard: list[int],
                         unscheduled: Mapping[int, int] | None = None) -> ControlMsg:
         """``unscheduled``: the starvation counter m of each object id (0 if absent),
-        from ``agreement.unscheduled_after`` on the previous interval."""
+        from ``agreement.unscheduled_after`` on the previous interval. The message of
+        the vehicle's first domain; ``control_messages`` gives one per domain."""
+        domain = self.domains.membership(view.pose.x_m, view.pose.y_m)[0]
+        return self.control_messages(view, scan, trajectory, {domain: heard}, {domain: unscheduled or {}},
+                                     (domain,))[domain]
+
+    def control_messages(self, view: View, scan: Scan, trajectory: np.ndarray, heard: Mapping[int, list[int]],
+                         unscheduled: Mapping[int, Mapping[int, int]], domains: tuple[int, ...]
+                         ) -> dict[int, ControlMsg]:
+        """This vehicle's control message in each of ``domains``: the object map is
+        worked out once for every receiver of any of them, and each domain's message
+        keeps the receivers of that domain; ``heard[d]`` and ``unscheduled[d]`` are the
+        vehicle's ballot and starvation counters in domain d. In a map of one domain
+        the message names no domains (``ControlMsg.domains`` empty)."""
         neighbors = self.neighbors.current(view.t_sim_s, exclude=self.mission.vid)
-        objects = self.object_map(view, neighbors)
-        counts = unscheduled or {}
-        m = np.array([counts.get(int(k), 0) for k in objects.object_id.tolist()], dtype=np.int64)
-        return ControlMsg(view.tick, view.t_sim_s, self.mission.vid, view.pose, scan.speed_mps, trajectory, objects,
-                          np.array(sorted(heard), dtype=np.int64), m)
+        whole = self.object_map(view, neighbors, domains)
+        named = np.array(domains if len(self.domains) > 1 else (), dtype=np.int64)
+        out = {}
+        for d in domains:
+            objects = whole
+            if len(domains) > 1:  # the receivers of this domain only
+                rx_xy = neighbors.xy[np.searchsorted(neighbors.vid, whole.receivers)].reshape(-1, 2)
+                cols = np.hypot(rx_xy[:, 0] - self.domains.center[d, 0],
+                                rx_xy[:, 1] - self.domains.center[d, 1]) <= self.domains.limit_m[d]
+                objects = ObjectMap(whole.object_id, whole.size_bytes, whole.centroid_xy, whole.receivers[cols],
+                                    np.ascontiguousarray(whole.visibility[:, cols]),
+                                    np.ascontiguousarray(whole.relevance[:, cols]))
+            counts = unscheduled.get(d) or {}
+            m = np.array([counts.get(int(k), 0) for k in objects.object_id.tolist()], dtype=np.int64)
+            out[d] = ControlMsg(view.tick, view.t_sim_s, self.mission.vid, view.pose, scan.speed_mps, trajectory,
+                                objects, np.array(sorted(heard.get(d, [])), dtype=np.int64), m,
+                                domains=named)
+        return out
 
     # ----------------------------------------------------------------- share
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -60,9 +60,14 @@ class _Mailbox:
 class V2VLink:
     def __init__(self, session: zenoh.Session, run: str, vid: int, drops: DropCounter, stop: threading.Event,
                  timeout_s: float = 10.0, receives_data: bool = True, shm_dir: str | None = None,
-                 missed: DropCounter | None = None) -> None:
+                 missed: DropCounter | None = None, channels: Sequence[int] = (0,)) -> None:
         """``shm_dir``: the bundles come through the run's shared memory (``protocol.shm``;
         ``missed`` counts the notices whose bundle was no longer there).
+
+        ``channels[d]``: the radio channel of scheduler domain d (the map's domains,
+        docs/domains.md). The link listens to every domain's bundles, each of which
+        lists as receivers only the vehicles that took part in that domain; domain 0 on
+        channel 0 has the run's plain keys.
 
         ``receives_data`` False: a vehicle that uses nothing it could decode (one that
         fuses nothing, ``__main__.fuses``) does not subscribe to the data bundle, which
@@ -72,22 +77,25 @@ class V2VLink:
         self.vid, self.stop, self.timeout_s = vid, stop, timeout_s
         self.drops = drops
         self.receives_data = receives_data
-        self._ctrl, self._data, self._emp = _Mailbox(), _Mailbox(), _Mailbox()
+        domains = list(enumerate(channels))
+        self._ctrl = {d: _Mailbox() for d, _ in domains}
+        self._data = {d: _Mailbox() for d, _ in domains}
+        self._emp = _Mailbox()
         self.missed_bundles = 0
         self.wait_s = 0.0  # time spent waiting for bundles (the channel's phases), reset by the caller
-        self._subs = [
-            shm.subscribe(session, keys.net_ctrl_rx(run), shm_dir, CtrlBundle, _into(self._ctrl), drops, missed),
-            session.declare_subscriber(keys.net_emp_down(run, vid), typed_handler(EmpBundle, _into(self._emp), drops)),
-        ]
+        self._subs = [shm.subscribe(session, keys.net_ctrl_rx(run, c, d), shm_dir, CtrlBundle, _into(self._ctrl[d]),
+                                    drops, missed) for d, c in domains]
+        self._subs.append(session.declare_subscriber(keys.net_emp_down(run, vid),
+                                                     typed_handler(EmpBundle, _into(self._emp), drops)))
         if receives_data:
-            self._subs.append(shm.subscribe(session, keys.net_data_rx(run), shm_dir, DataBundle, _into(self._data),
-                                            drops, missed))
-        self._ctrl_pub = reliable_publisher(session, keys.net_ctrl_tx(run, vid))
-        self._data_pub = big_publisher(session, keys.net_data_tx(run, vid))
+            self._subs += [shm.subscribe(session, keys.net_data_rx(run, c, d), shm_dir, DataBundle,
+                                         _into(self._data[d]), drops, missed) for d, c in domains]
+        self._ctrl_pubs = {d: reliable_publisher(session, keys.net_ctrl_tx(run, vid, c, d)) for d, c in domains}
+        self._data_pubs = {d: big_publisher(session, keys.net_data_tx(run, vid, c, d)) for d, c in domains}
         self._emp_pub = big_publisher(session, keys.net_emp_up(run, vid))
 
     def close(self) -> None:
-        for entity in (*self._subs, self._ctrl_pub, self._data_pub, self._emp_pub):
+        for entity in (*self._subs, *self._ctrl_pubs.values(), *self._data_pubs.values(), self._emp_pub):
             entity.undeclare()
 
     def _take(self, box: _Mailbox, tick: int):
@@ -99,21 +107,37 @@ class V2VLink:
 
     def exchange_control(self, msg: ControlMsg) -> list[HeardControl]:
         """Broadcast our control message; return the ones we heard this interval."""
-        heard = heard_in(self.exchange_control_raw(encode(msg), msg.tick), self.vid, self.drops)
-        if heard is None:
-            self.missed_bundles += 1
-            return []
-        return heard
+        return self.exchange_controls({0: msg})[0]
+
+    def exchange_controls(self, msgs: Mapping[int, ControlMsg]) -> dict[int, list[HeardControl]]:
+        """Broadcast our control message in each domain (``msgs[d]``), then return, per
+        domain, the ones we heard there this interval."""
+        tick = next(iter(msgs.values())).tick
+        bundles = self.exchange_control_raws({d: encode(m) for d, m in msgs.items()}, tick)
+        out = {}
+        for d, bundle in bundles.items():
+            heard = heard_in(bundle, self.vid, self.drops)
+            if heard is None:
+                self.missed_bundles += 1
+            out[d] = heard or []
+        return out
 
     def exchange_control_raw(self, raw: bytes, tick: int) -> CtrlBundle | None:
         """Broadcast our encoded (or sealed) control message of ``tick``; return the
         interval's bundle (None if none came: the caller counts it missed)."""
+        return self.exchange_control_raws({0: raw}, tick)[0]
+
+    def exchange_control_raws(self, raws: Mapping[int, bytes], tick: int) -> dict[int, CtrlBundle | None]:
+        """``exchange_control_raw`` in each domain of ``raws``: every message is sent
+        before any bundle is waited for (the proxy closes the phase once a vehicle has
+        sent in each of its domains)."""
         phases.mark("agent.ctrl_sent", tick)
-        self._ctrl_pub.put(raw)
-        bundle = self._take(self._ctrl, tick)
-        if bundle is not None:
+        for d, raw in raws.items():
+            self._ctrl_pubs[d].put(raw)
+        bundles = {d: self._take(self._ctrl[d], tick) for d in raws}
+        if any(b is not None for b in bundles.values()):
             phases.mark("agent.ctrl_bundle", tick)
-        return bundle
+        return bundles
 
     def exchange_data(self, tick: int, t_sim_s: float, transmissions: list[Transmission],
                       receive: bool = True) -> list[Reception]:
@@ -121,21 +145,36 @@ class V2VLink:
         ``receive`` False (the vehicle fuses nothing), nothing at once, without waiting
         for the data phase to close. ``ValueError`` if the link does not take the bundle
         (``receives_data``) and ``receive`` asks for it."""
+        return self.exchange_datas(tick, t_sim_s, {0: transmissions}, receive)
+
+    def exchange_datas(self, tick: int, t_sim_s: float, transmissions: Mapping[int, list[Transmission]],
+                       receive: bool = True) -> list[Reception]:
+        """``exchange_data`` in each domain of ``transmissions``: what we decoded in all
+        of them, an object heard in two domains once (the first domain's)."""
         if receive and not self.receives_data:
             raise ValueError("this link does not take the data bundle (receives_data=False)")
-        raw = encode(DataTx(tick, t_sim_s, self.vid, transmissions))
         phases.mark("agent.data_sent", tick)
-        self._data_pub.put(raw)
+        for d, txs in transmissions.items():
+            self._data_pubs[d].put(encode(DataTx(tick, t_sim_s, self.vid, txs)))
         if not receive:
             return []
-        bundle = self._take(self._data, tick)
-        if bundle is not None:
-            phases.mark("agent.data_bundle", tick)
-        mine = received_in(bundle, self.vid)
-        if mine is None:
-            self.missed_bundles += 1
-            return []
-        return mine
+        out: list[Reception] = []
+        seen: set[tuple[int, int]] = set()
+        for d in transmissions:
+            bundle = self._take(self._data[d], tick)
+            if bundle is not None:
+                phases.mark("agent.data_bundle", tick)
+            mine = received_in(bundle, self.vid)
+            if mine is None:
+                self.missed_bundles += 1
+                continue
+            if len(transmissions) == 1:
+                return mine
+            for r in mine:
+                if (r.sender, r.object_id) not in seen:
+                    seen.add((r.sender, r.object_id))
+                    out.append(r)
+        return out
 
     def exchange_emp(self, tick: int, t_sim_s: float, pose: Pose, segment_world: np.ndarray) -> EmpBundle | None:
         """Upload our Voronoi segment to the edge relay; return what it forwarded to us."""

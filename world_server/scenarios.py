@@ -48,10 +48,10 @@ import numpy as np
 from protocol import plugins
 from protocol.messages import VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
-from world_server.roadmap import RoadMap, intersection, straight_road
+from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, corridor, intersection, straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-DOMAIN_RADIUS_M = 85.0  # R/2 with R ~ 170 m (urban LTE-Direct), paper section 4.1
+NETWORK_SCENARIOS = ("corridor3",)  # several scheduler domains (docs/domains.md), registered below
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
@@ -353,18 +353,30 @@ def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m:
     return out
 
 
+def left_turn_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
+    """The left-turn event at a junction (lane ids ``prefix`` + ...): the ego turns left
+    from ``ego_arm``, the opposite left-turning truck, waiting inside the junction, hides
+    the collider coming straight from the opposite arm and the cars that follow it.
+    Returns the actors and the conflict point."""
+    a, o = ego_arm, OPPOSITE[ego_arm]
+    collider_route = m.route(f"{prefix}{o}.in.1", f"{prefix}{o}.in.1>{a}", f"{prefix}{a}.out.1")
+    ego, collider, conflict = crossing_actors(
+        p, m, m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{LEFT_OF[a]}", f"{prefix}{LEFT_OF[a]}.out.0"),
+        collider_route, LEFT_TURN_EGO_KMH)
+    truck = left_turner(m, f"{prefix}{o}.in.0",
+                        m.route(f"{prefix}{o}.in.0", f"{prefix}{o}.in.0>{LEFT_OF[o]}", f"{prefix}{LEFT_OF[o]}.out.0"))
+    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    return [ego, truck, collider, *traffic], conflict
+
+
 @register_scenario("left_turn", time_limit_s=30.0)
 def _left_turn(p: ScenarioParams) -> Scenario:
     """Ego turns left from the south; the opposite left-turning truck, waiting inside the
     junction, hides the oncoming collider and the cars that follow it."""
     m = intersection()
-    collider_route = m.route("N.in.1", "N.in.1>S", "S.out.1")
-    ego, collider, conflict = crossing_actors(
-        p, m, m.route("S.in.0", "S.in.0>W", "W.out.0"), collider_route, LEFT_TURN_EGO_KMH)
-    truck = left_turner(m, "N.in.0", m.route("N.in.0", "N.in.0>E", "E.out.0"))
-    traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
+    actors, conflict = left_turn_event(p, m, "S")
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
-    return Scenario(p, m, [ego, truck, collider, *traffic], conflict, lights)
+    return Scenario(p, m, actors, conflict, lights)
 
 
 @register_scenario("red_light", time_limit_s=40.0)
@@ -408,17 +420,22 @@ def _overtaking(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, [ego, truck, collider, *traffic], conflict, {})
 
 
+@register_scenario("corridor3", time_limit_s=30.0)
+def _corridor3(p: ScenarioParams) -> Scenario:
+    """``left_turn`` at the middle junction ``J1`` of a corridor of three
+    (``roadmap.corridor``: three domains on channels 0, 1, 0). The main road's lights are
+    green at ``J0`` and ``J2`` and red at ``J1``, whose cross street has green; the
+    background drives along the main road through the junctions, across the domains'
+    borders."""
+    m = corridor(3)
+    actors, conflict = left_turn_event(p, m, "S", "J1:")
+    main_road_green = {0: "red", 2: "red", 1: "green", 3: "green"}  # per junction: S 0, E 1, N 2, W 3
+    lights = {4 * j + k: state for j in (0, 2) for k, state in main_road_green.items()}
+    lights |= {4 + k: "red" if k % 2 else "green" for k in range(4)}  # J1: the cross street has green
+    return Scenario(p, m, actors, conflict, lights)
+
+
 # ------------------------------------------------------------------------ background
-
-
-def _lane_continuation(m: RoadMap, lane_id: str) -> np.ndarray:
-    """A lane followed straight on through the intersection, if it leads into one."""
-    if ".in." in lane_id:
-        straight = next(k for k in m.lanes if k.startswith(lane_id + ">") and
-                        k.split(">")[1] == {"S": "N", "N": "S", "E": "W", "W": "E"}[lane_id[0]])
-        arm_out = f"{straight.split('>')[1]}.out.{lane_id[-1]}"
-        return m.route(lane_id, straight, arm_out)
-    return m.lanes[lane_id].centerline
 
 
 def _footprint_circles(xy: np.ndarray, yaw: np.ndarray, spec: VehicleSpec) -> np.ndarray:
@@ -443,6 +460,8 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
     n_needed = p.vehicles - sum(a.connected for a in scenario.actors)
     times = np.arange(0.0, p.duration_s + 1e-9, 0.25)
     kept = [(a, _sweep(a, times)) for a in scenario.actors]
+    centers = m.domain_centers()
+    network = len(centers) > 1  # several domains: the main road's traffic drives on through the junctions
     candidates = []
     for lane_id, lane in m.lanes.items():
         if ">" in lane_id:
@@ -450,11 +469,13 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
         cum = arc_lengths(lane.centerline)
         for s in np.arange(6.0, cum[-1] - 6.0, BACKGROUND_SPACING_M):
             xy, yaw = point_at(lane.centerline, s)
-            rel = xy - m.center
+            rel = xy - centers[np.argmin(np.hypot(*(xy - centers).T))] if network else xy - m.center
             if np.linalg.norm(rel) > DOMAIN_RADIUS_M:
                 continue
             away = float(rel @ np.array([np.cos(yaw), np.sin(yaw)])) > 0
-            moving = away and not lane_id.startswith("P_")
+            light = m.lanes[lane_id].light_id
+            through = network and lane_id in m.straight_on and (light < 0 or scenario.lights.get(light) == "green")
+            moving = (away or through) and not lane_id.startswith("P_")
             candidates.append((lane_id, float(s), moving))
     order = rng.permutation(len(candidates))
     kinds = rng.random(len(candidates)) < TRUCK_SHARE
@@ -464,7 +485,7 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
             break
         lane_id, s, moving = candidates[idx]
         kind = "truck" if kinds[idx] else "car"
-        route = _trim(_lane_continuation(m, lane_id), s)
+        route = _trim(m.through_route(lane_id), s)
         cand = Actor(vid, "background", kind, route, BACKGROUND_SPEED_MPS if moving else 0.0, True)
         sweep = _sweep(cand, times)
         r = cand.spec.width_m / 2
@@ -479,7 +500,7 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
     scenario.actors.sort(key=lambda a: a.vid)
 
 
-assert set(_BUILDERS) == set(SCENARIOS)
+assert set(_BUILDERS) == set(SCENARIOS) | set(NETWORK_SCENARIOS)
 
 __all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Actor", "build", "builder_of", "register_scenario",
            "params_from_dict", "load_scenario_file", "SCENARIOS"]

@@ -177,8 +177,8 @@ class DropCounter:
         with self._lock:
             n = self.counts.get(key, 0) + 1
             self.counts[key] = n
-        if n == 1 or n % 100 == 0:
-            log.warning("dropped %s #%d on %s: %s", self.what, n, key, err)
+        if n == 1 or n % 100 == 0:  # the text, not the exception: a kept record must not hold its traceback's frames
+            log.warning("dropped %s #%d on %s: %s", self.what, n, key, str(err))
 
 
 def typed_handler(expected: type, on_msg: Callable[[str, Any], None], drops: DropCounter,

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import wait_until
 from protocol import keys
-from protocol.codec import encode
+from protocol.codec import MalformedMessage, encode
 from protocol.messages import DataBundle, Reception, Transmission
 from protocol.session import DropCounter, ZenohArgs, open_session
 from vehicle_agent.__main__ import fuses
@@ -82,3 +82,16 @@ def test_a_vehicle_receives_data_exactly_when_its_plan_can_use_it(scenario):
         assert fuses(m, reports=False) is not Planner(m).holds_still
         assert fuses(m, reports=True)
     assert any(fuses(m, False) for m in missions) and not all(fuses(m, False) for m in missions)
+
+
+def test_a_dropped_payloads_log_record_holds_its_text_not_the_exception(caplog):
+    """A handler that keeps records (pytest's capture, a buffer) must not keep what the
+    refusal's traceback holds: its frames, and the whole pipeline they ran in."""
+    drops = DropCounter()
+    try:
+        raise MalformedMessage("ControlMsg.tick: -1 is not in [0, 1e+09]")
+    except MalformedMessage as err:
+        drops.add("ctrl bundle item", err)
+    [record] = [r for r in caplog.records if "dropped" in r.getMessage()]
+    assert "ControlMsg.tick" in record.getMessage()
+    assert not any(isinstance(a, BaseException) for a in record.args)

@@ -121,12 +121,26 @@ def test_a_killed_agent_does_not_stall_the_world(procs, hub, tap_on):
 
 @pytest.mark.heavy
 def test_a_hung_agent_is_declared_dead_after_the_timeout(procs, hub, tap_on):
+    """Agent 1 is a stand-in that answers ticks 0-2 and then hangs: alive to the network
+    (its token stays), silent to the world. The world cannot pass tick 3 without it, so
+    the verdict does not depend on when the test gets to run."""
     w = world(procs, hub, "--vehicles", "3", "--duration", "3", "--agent-timeout-s", "3.0")
     tap = tap_on()
-    agents = [agent(procs, hub, vid) for vid in range(3)]
-    tap.wait_tick(3)
-    os.kill(agents[1].pid, signal.SIGSTOP)  # alive to the network, silent to the world
-    result = outcome_of(w)
+
+    def on_scan(sample):
+        scan = decode(sample.payload.to_bytes(), Scan)
+        if scan.tick < 3:
+            put(tap.session, keys.cmd(RUN, 1), Command(scan.tick, scan.t_sim_s, 1, 0.0, 0.0))
+
+    sub = tap.session.declare_subscriber(keys.scan(RUN, 1), on_scan)
+    token = tap.session.liveliness().declare_token(keys.alive(RUN, 1))
+    for vid in (0, 2):
+        agent(procs, hub, vid)
+    try:
+        result = outcome_of(w)
+    finally:
+        sub.undeclare()
+        token.undeclare()
     assert result["ticks"] == 30
     assert list(result["dead_agents"]) == ["1"] and "no command" in result["dead_agents"]["1"]
 

@@ -969,3 +969,54 @@ def test_a_lane_blocked_ahead_stops_the_vehicle_rather_than_a_path_back_round_th
     assert ((path - [x, y]) @ forward >= -BEHIND_M - spec.cell_m).all()
     plan = planner.run_step(grid, grid.state, np.zeros((n, n), dtype=bool), [], pose, 5.0, 0.0)
     assert plan.conflict_s_m is not None and plan.conflict_s_m < 12.0  # it stops short of the wall
+
+
+# ------------------------------------------------------------------ stopping for a conflict
+
+
+def test_the_approach_to_a_stop_point_by_hand():
+    """comfort brake 4 m/s^2: the creep speed at d metres is sqrt(4 d) (half the comfort
+    rate stops the vehicle from it in d)."""
+    from vehicle_agent.planning import PlannerConfig, approach_accel
+
+    cfg = PlannerConfig(comfort_brake_mps2=4.0, comfort_accel_mps2=2.0)
+    assert approach_accel(8.0, 8.0, cfg, 8.0) == pytest.approx(-4.0)  # 64 / 16: stops at 8 m
+    assert approach_accel(12.0, 4.0, cfg, 8.0) == pytest.approx(-8.0)  # 144 / 8 = 18, capped
+    assert approach_accel(0.0, 9.0, cfg, 8.0) == pytest.approx(2.0)  # standing 9 m short: creep 6 m/s
+    assert approach_accel(5.9, 9.0, cfg, 8.0) == pytest.approx(1.0)  # 0.1 m/s below it, in one tick
+    assert approach_accel(6.5, 9.0, cfg, 8.0) == pytest.approx(-6.5**2 / 18)  # above it: stop at 9 m
+    assert approach_accel(0.0, 0.4, cfg, 8.0) == pytest.approx(-8.0)  # at the stop point: hold
+
+
+def _drive_to(stop_x, v0: float, ticks: int, cfg) -> tuple[float, float, float]:
+    """A point vehicle at 10 Hz under ``approach_accel``; ``stop_x(k)`` is the stop point at
+    tick k. Returns where it ended, its speed, and the least gap to the stop point."""
+    from vehicle_agent.planning import approach_accel
+
+    x, v, least = 0.0, v0, float("inf")
+    for k in range(ticks):
+        a = approach_accel(v, max(stop_x(k) - x, 0.0), cfg, 8.0)
+        v_next = max(v + a * 0.1, 0.0)
+        x += (v + v_next) / 2 * 0.1
+        v = v_next
+        least = min(least, stop_x(k) - x)
+    return x, v, least
+
+
+def test_a_vehicle_braking_for_a_stop_point_that_moves_on_stops_at_the_new_one():
+    """From 30 km/h the stop point is 10 m ahead; after 1 s it moves on to 17.6 m (the
+    left turn's oncoming stream, seen whole): the vehicle ends within half a metre of it,
+    never past it. (Braking at a fixed rate it stopped 7.6 m short and stayed there.)"""
+    from vehicle_agent.planning import PlannerConfig
+
+    x, v, least = _drive_to(lambda k: 10.0 if k < 10 else 17.6, 8.33, 200, PlannerConfig())
+    assert v == 0.0 and 17.6 - 0.5 <= x <= 17.6 and least >= 0.0
+
+
+def test_a_vehicle_standing_short_of_its_stop_point_moves_up_to_it():
+    from vehicle_agent.planning import PlannerConfig
+
+    x, v, least = _drive_to(lambda k: 12.0, 0.0, 200, PlannerConfig())
+    assert v == 0.0 and 12.0 - 0.5 <= x <= 12.0 and least >= 0.0
+    x, v, _ = _drive_to(lambda k: 0.3, 0.0, 50, PlannerConfig())  # already there: it holds
+    assert x == 0.0 and v == 0.0

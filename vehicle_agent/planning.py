@@ -18,13 +18,15 @@ path is a conflict too. Bodies: the ego is three
 circles of its half width along the path (rear, middle, front), each object its
 oriented box. The vehicle
 follows the plan until it is within stopping distance of the first conflict, then
-brakes to stop short of it, and keeps braking while any conflict remains; it resumes
-when the conflict is gone.
+brakes to stop short of it (``approach_accel``: at the stop point, moving up to it
+while the conflict moves on), and stays stopping while any conflict remains; it
+resumes when the conflict is gone.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -843,6 +845,31 @@ def first_conflict(path: np.ndarray, t_path: np.ndarray, spec: VehicleSpec, obst
     return float(s[np.argmax(first)]) if first.any() else None
 
 
+TICK_S = 0.1  # the decision interval: a plan's acceleration holds for one tick
+AT_STOP_M = 0.5  # this close to the stop point the vehicle is there: full brake, hold
+
+
+def approach_accel(speed_mps: float, stop_at_m: float, cfg: PlannerConfig, max_brake_mps2: float) -> float:
+    """The acceleration of a vehicle stopping for a conflict ``stop_at_m`` ahead.
+
+    It brakes at the constant rate that stops it at the stop point, ``v^2 / 2d``, and,
+    rolling slower than the speed from which half the comfort braking rate stops it
+    there (or standing), drives up to that speed: a vehicle stops where it may wait, not
+    wherever it happened to begin braking, so a vehicle that learns of a conflict early
+    is not the worse for it (braking at a fixed rate, a left-turning ego that saw the
+    oncoming stream early stopped well short of where it could wait, held there, and
+    crossed later than one that saw it late). Moving up stays safe: the stop point is
+    out of the conflict's swept zone, and from the creep speed half the comfort rate
+    stops the vehicle before it.
+    """
+    if stop_at_m < AT_STOP_M:
+        return -max_brake_mps2
+    creep_mps = math.sqrt(cfg.comfort_brake_mps2 * stop_at_m)  # sqrt(2 (b / 2) d)
+    if speed_mps > creep_mps:
+        return -min(speed_mps**2 / (2 * stop_at_m), max_brake_mps2)
+    return min(cfg.comfort_accel_mps2, (creep_mps - speed_mps) / TICK_S)
+
+
 SHARED_HORIZON_S = 8.0  # the shared trajectory covers what others judge relevance over (spatial.HORIZON_S)
 
 
@@ -978,12 +1005,9 @@ class Planner:
             stopping = speed_mps**2 / (2 * cfg.comfort_brake_mps2)
             was_braking = self.last is not None and self.last.braking and self.last.conflict_s_m is not None
             # within stopping distance (plus one tick); once braking for a conflict, keep at it
-            if was_braking or stop_at <= stopping + speed_mps * 0.1 + 1.0:
+            if was_braking or stop_at <= stopping + speed_mps * TICK_S + 1.0:
                 braking = True
-                accel = -spec.max_brake_mps2 if stop_at < 0.5 else -min(
-                    max(speed_mps**2 / (2 * max(stop_at, 0.1)), cfg.comfort_brake_mps2 * 0.5), spec.max_brake_mps2)
-                if speed_mps < 0.3:
-                    accel = -spec.max_brake_mps2  # hold
+                accel = approach_accel(speed_mps, stop_at, cfg, spec.max_brake_mps2)
         # The shared trajectory is where the vehicle means to go: while it brakes or waits
         # for a conflict, the drive it resumes once the conflict is gone. Senders judge an
         # object's relevance against it; a trajectory that stops short of the conflict made

@@ -104,3 +104,33 @@ def test_count_in_box_by_hand():
 
     xy = np.array([[10.0, 22.5], [10.0, 22.6], [11.0, 20.0], [11.1, 20.0], [9.5, 18.0], [10.0, 20.0]])
     assert count_in_box(xy, 10.0, 20.0, 0.0, 1.0, 2.5, 1.0) == 4  # the 2nd and 4th are out
+
+
+def test_visibility_over_the_encounter_counts_the_ticks_before_either_passed_the_conflict_point():
+    """Blind drivers, the collider late (delta 3 s): the ego passes the conflict point
+    first. The ego's reported view holds the collider's true centre (as a 9-point patch)
+    in every tick until the ego's rear is past the conflict point, and nothing after, so
+    its share over the encounter is 1 and over the run the encounter's share of ticks."""
+    from world_server.geometry import project_s
+
+    sim = Simulation(ScenarioParams(scenario="left_turn", vehicles=5, delta_s=3.0))
+    ctl = {a.vid: VehicleController(a.spec) for a in sim.scenario.connected()}
+    ego, col = sim.scenario.ego, sim.scenario.collider
+    assert ego.vid == 0
+    conflict_s = project_s(ego.route, sim.scenario.conflict_xy)
+    before = 0  # ticks, counted here from the ego's own progress
+    while not sim.done:
+        views = sim.sense(sim.connected_vids)
+        cmds = {vid: ctl[vid].run_step(v.pose, v.speed_mps, sim.scenario.actors[vid].route,
+                                       sim.scenario.actors[vid].speed_mps) for vid, v in views.items()}
+        phys = sim.physics
+        passed = project_s(ego.route, np.array([phys.x[0], phys.y[0]])) > conflict_s + ego.spec.length_m
+        centre = np.array([phys.x[col.vid], phys.y[col.vid]])
+        seen = centre + np.array([(dx, dy) for dx in (-0.5, 0, 0.5) for dy in (-0.5, 0, 0.5)])
+        before += not passed
+        sim.step(cmds, ego_fused_xy=np.empty((0, 2)) if passed else seen)  # judged at this tick's poses
+    r = sim.result()
+    assert r["outcome"] == "safe" and 0 < before < sim.tick
+    assert r["encounter_ticks"] == before
+    assert r["collider_visible_share_encounter"] == 1.0
+    assert r["collider_visible_share"] < 1.0

@@ -93,3 +93,14 @@ def test_a_changed_mcap_is_read_again_and_a_missing_one_is_named(sweep):
     assert report.main([str(sweep)]) == 0
     md = (sweep / "report" / "summary.md").read_text()
     assert "No data" in md and "1 judged run with a channel left out, MCAP missing or unreadable: `r1`" in md
+
+
+def test_visibility_over_the_encounter_is_the_mean_over_the_runs_that_have_it():
+    records = [record("a", "autocast", 40, 0.9, collider_visible_share_encounter=1.0),
+               record("b", "autocast", 40, 0.8, collider_visible_share_encounter=0.9),
+               record("c", "autocast", 40, 0.7),  # recorded before the judge measured it
+               record("d", "agnostic", 40, 0.98)]
+    vis = report.visibility_by_density(records)
+    assert vis[("autocast", 40)].share_mean == pytest.approx(0.8)
+    assert vis[("autocast", 40)].encounter_mean == pytest.approx(0.95)
+    assert vis[("agnostic", 40)].encounter_mean is None

@@ -14,7 +14,11 @@ which at least 5 of the collider's points were in its view: its fused view, own 
 received points, when the ego agent reports it, else its own LiDAR's) to the last
 moment at which braking at its maximum deceleration would still have stopped it
 before the conflict point. Collider visibility (share of ticks, mean points) is
-measured the same way.
+measured the same way, over the whole run (``collider_visible_share``, the paper's
+"percentage of frames") and over the encounter (``collider_visible_share_encounter``):
+the ticks before the ego or the collider had passed the conflict point, while the
+collider could still matter to the ego. A scheme that stops sending the collider once it
+is behind the ego scores lower on the first, not on the second.
 """
 
 from __future__ import annotations
@@ -52,6 +56,8 @@ class Judge:
     _ticks: int = 0
     _collider_points: list[int] = field(default_factory=list)
     _fused_points: list[int] = field(default_factory=list)
+    _fused_ticks: list[int] = field(default_factory=list)  # the tick index of each _fused_points entry
+    _in_encounter: list[bool] = field(default_factory=list)  # per tick: neither had passed the conflict point
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -104,6 +110,7 @@ class Judge:
             self._visible_ticks += 1
         if collider_points_fused is not None:
             self._fused_points.append(collider_points_fused)
+            self._fused_ticks.append(self._ticks - 1)
         aware_now = (collider_points_fused if collider_points_fused is not None
                      else collider_points_in_ego_view) >= AWARE_MIN_POINTS
         if aware_now and self._ego_aware_t is None:
@@ -117,10 +124,11 @@ class Judge:
         to_go = self._ego_conflict_s - ego_s
         if to_go > 0 and to_go - phys.v[e] ** 2 / (2 * phys.max_brake[e]) >= 0:
             self._last_brake_t = t
-        if self.verdict is not None:
-            return
         ego_past = ego_s > self._ego_conflict_s + phys.specs[e].length_m
         col_past = col_s > self._col_conflict_s + phys.specs[c].length_m
+        self._in_encounter.append(not (ego_past or col_past) and (not self._in_encounter or self._in_encounter[-1]))
+        if self.verdict is not None:
+            return
         both_stopped = phys.v[e] < STOPPED_MPS and phys.v[c] < STOPPED_MPS
         if ego_past and (col_past or phys.v[c] < STOPPED_MPS):
             self.verdict = "near_miss" if self.closest_m < self.near_miss_m else "safe"
@@ -150,6 +158,11 @@ class Judge:
         pts = np.array(self._collider_points or [0])
         fused = np.array(self._fused_points) if self._fused_points else None
         own_share = self._visible_ticks / max(self._ticks, 1)
+        during = np.array(self._in_encounter, dtype=bool)
+        if fused is not None:
+            seen, during = fused >= AWARE_MIN_POINTS, during[np.array(self._fused_ticks)]
+        else:
+            seen = np.array(self._collider_points, dtype=np.int64) >= AWARE_MIN_POINTS
         return {
             "outcome": self.verdict,
             "closest_distance_m": round(self.closest_m, 3) if math.isfinite(self.closest_m) else None,  # None: no step
@@ -159,6 +172,8 @@ class Judge:
             else round(own_share, 4),
             "collider_points_mean": round(float(fused.mean()), 2) if fused is not None else round(float(pts.mean()), 2),
             "visibility_source": "fused" if fused is not None else "own_lidar",
+            "collider_visible_share_encounter": round(float(seen[during].mean()), 4) if during.any() else None,
+            "encounter_ticks": int(during.sum()),
             "collider_visible_share_own": round(own_share, 4),
             "collider_points_mean_own": round(float(pts.mean()), 2),
             "crash_with": self.crash_with,

@@ -95,6 +95,7 @@ class Visibility:
     runs: int
     share_mean: float  # share of ticks the collider was in the ego's fused view (>= 5 points)
     points_mean: float  # collider points in the ego's fused view, mean over ticks
+    encounter_mean: float | None = None  # the share over the encounter (judge.py), mean over the runs with it
 
 
 def visibility_by_density(records: Sequence[dict[str, Any]]) -> dict[tuple[str, int], Visibility]:
@@ -103,8 +104,13 @@ def visibility_by_density(records: Sequence[dict[str, Any]]) -> dict[tuple[str, 
     for r in judged(records):
         if r.get("collider_visible_share") is not None:
             groups[(r["scheme"], r["vehicles"])].append(r)
+    def encounter(g: list[dict[str, Any]]) -> float | None:
+        shares = [r["collider_visible_share_encounter"] for r in g
+                  if r.get("collider_visible_share_encounter") is not None]
+        return statistics.fmean(shares) if shares else None
+
     return {k: Visibility(len(g), statistics.fmean(r["collider_visible_share"] for r in g),
-                          statistics.fmean(r.get("collider_points_mean") or 0.0 for r in g))
+                          statistics.fmean(r.get("collider_points_mean") or 0.0 for r in g), encounter(g))
             for k, g in groups.items()}
 
 
@@ -738,10 +744,16 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
     densities = sorted({n for _, n in vis})
     lines += [f"## Collider visibility by scheme x density ({which})", "",
               "Share of ticks with the collider in the ego's fused view (at least 5 of its points), and its "
-              "mean points per tick; Single's view is its own LiDAR.", ""]
+              "mean points per tick; Single's view is its own LiDAR. In brackets the share over the encounter "
+              "alone: the ticks before the ego or the collider had passed the conflict point.", ""]
+
+    def cell(v: Visibility) -> str:
+        during = f" ({100 * v.encounter_mean:.0f}%)" if v.encounter_mean is not None else ""
+        return f"{100 * v.share_mean:.0f}%{during} / {v.points_mean:.0f} pts"
+
     lines += _md(["scheme", *[f"{n} vehicles" for n in densities]],
-                 [[s, *[f"{100 * vis[(s, n)].share_mean:.0f}% / {vis[(s, n)].points_mean:.0f} pts"
-                        if (s, n) in vis else "-" for n in densities]] for s in schemes_in(judged(chosen))])
+                 [[s, *[cell(vis[(s, n)]) if (s, n) in vis else "-" for n in densities]]
+                  for s in schemes_in(judged(chosen))])
 
     lines += ["", "## Per scenario: outcomes, reaction time, closest distance", "",
               "Reaction time: from the ego's first view of the collider to the last moment braking could still "

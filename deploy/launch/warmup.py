@@ -62,8 +62,10 @@ def warm_numba_caches(params: ScenarioParams) -> None:
         for part in PARTS.values():
             part(params)
     if progress is not None:
-        log.info("compiled %d numba kernels in %.1f s; later runs load them from the cache",
-                 progress.done, time.perf_counter() - t0)
+        loaded = max(progress.total - progress.done, 0)  # compiled meanwhile by another process, then loaded
+        log.info("compiled %d numba kernels in %.1f s%s; later runs load them from the cache", progress.done,
+                 time.perf_counter() - t0, f" (the other {loaded} of the {progress.total} missing were in the cache "
+                 "by then: another process compiled them)" if loaded else "")
     else:
         log.info("numba caches warm in %.1f s", time.perf_counter() - t0)
 

@@ -440,6 +440,8 @@ class PayloadCheck:
     another sender (``wrong_key``) or interval (``replayed``), bytes whose digest is none
     of those the sender signed (``bad_signature``: points changed, an object it did not
     list). The payload's header (sender, object id, tick) is inside the digested bytes.
+    Bytes the sender signed that are no object payload (no valid header) are authentic:
+    they pass, and the decoder drops them as malformed, as it drops a plain run's.
     A second copy of a payload is what its sender signed (a vehicle may send an object
     twice in an interval, and fusion keeps one reception per object): it passes.
     """
@@ -498,6 +500,8 @@ class PayloadCheck:
             self.rejections.add(self.stream, "unsigned", f"no signed control message of vehicle {sender}")
             return False
         if header is None:
+            if payload_digest(payload) in digests:  # its sender's own word, malformed: for the decoder to drop
+                return True
             self.rejections.add(self.stream, "bad_signature", f"vehicle {sender}: not an object payload")
             return False
         claimed, oid, tick = header

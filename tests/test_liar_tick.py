@@ -9,7 +9,9 @@ it breaks a declared invariant (``protocol.messages``). In the signed run the li
 signs its lie with its own valid certificate. The agent must finish the tick, count
 what it dropped (once, if it read the lie), and decide exactly what it decides when the
 liar's frame is not in the bundle at all: the same members, group, frames, missing
-members and messages, the same transmissions and the same command.
+members and messages, the same transmissions and the same command. A lying payload
+the liar vouches for (its digest in the liar's signed control message) is authentic:
+the decoder's own checks drop it, counted as malformed, not as rejected.
 
 The suite runs the ``ci`` hypothesis profile (25 examples per property);
 ``AUTOCAST_HYPOTHESIS=fuzz`` runs 10,000 (``python -m pytest tests/test_liar_tick.py``).
@@ -37,7 +39,7 @@ from test_invariants import _array, _header_float, _set  # a wire list's arrays 
 from protocol import keys
 from protocol.codec import COORD_BOUND_M, MalformedMessage, _packed_to_wire, decode, encode
 from protocol.messages import ControlMsg, CtrlBundle, DataBundle, Mission, MapMsg, Reception, Scan, Signed
-from protocol.security import Credentials, Signer
+from protocol.security import Credentials, Signer, payload_digest
 from protocol.session import DropCounter
 from vehicle_agent.__main__ import Pipeline
 from vehicle_agent.agreement import HeardControl
@@ -308,3 +310,46 @@ def test_a_lying_payload_is_dropped_and_changes_nothing(ticks, baselines, run, l
         assert sum(rejected.get(DATA_STREAM, {}).values()) - sum(want_rejected.get(DATA_STREAM, {}).values()) == lies
     else:  # dropped as it is decoded, each counted once
         assert dropped == ({DATA_STREAM: lies} if lies else {}), what
+
+
+DIGESTS = 11  # ControlMsg.digests' place in its wire list
+
+
+def _swapped(digests: dict[bytes, bytes]):
+    """A change of a control message's digests: each row that is a key of ``digests`` becomes its value."""
+    def change(a):
+        rows = [digests.get(row.tobytes(), row.tobytes()) for row in a]
+        return np.frombuffer(b"".join(rows), a.dtype).reshape(a.shape)
+    return change
+
+
+@given(lie=payload_lies())
+def test_a_lying_payload_its_sender_vouches_for_is_dropped_as_it_is_decoded(ticks, baselines, lie):
+    """The liar puts its lying payloads' digests in its control message and signs it with its
+    own valid certificate: the payloads are authentic (nothing more is rejected), and the
+    decoder's checks drop each one the ego read, once, as malformed."""
+    t = ticks["signed"]
+    what, change = lie
+    b = decode(t.data, DataBundle)
+    receptions = [Reception(r.sender, r.object_id, r.rx_time_s, change(r.payload)) if r.sender == t.liar else r
+                  for r in b.receptions]
+    if receptions == b.receptions:
+        return
+    vouched = {payload_digest(r.payload): payload_digest(change(r.payload)) for r in b.receptions
+               if r.sender == t.liar}
+    body = t._body(t.liar_raw)
+    signed = np.frombuffer(body[DIGESTS][2], np.uint8).reshape(body[DIGESTS][1])
+    assert set(vouched) <= {row.tobytes() for row in signed}  # what it sent is what it had signed
+    body = _set(body, (DIGESTS,), lambda d: _array(d, _swapped(vouched)))
+    seen, sent, cmd, dropped, rejected, _ = t.play(_with_frame(t.ctrl, t.liar, t.lie(body)),
+                                                   encode(DataBundle(b.tick, b.t_sim_s, b.receivers, b.decoded,
+                                                                     receptions)))
+    want_seen, want_sent, want_cmd, _, want_rejected, _ = baselines["signed", "data"]
+    messages = dict(want_seen[4])
+    if t.liar in messages:  # its message as it is now: vouching for its lies
+        messages[t.liar] = encode(decode(msgpack.packb(body, use_bin_type=True), ControlMsg))
+    assert (seen, sent, cmd) == ((*want_seen[:4], messages), want_sent, want_cmd), what
+    row = b.receivers.tolist().index(EGO)
+    lies = sum(receptions[k] != b.receptions[k] for k in np.flatnonzero(b.decoded[row]).tolist())  # that it read
+    assert rejected == want_rejected, what
+    assert dropped == ({DATA_STREAM: lies} if lies else {}), what

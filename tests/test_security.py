@@ -148,6 +148,19 @@ def test_a_payload_is_checked_against_its_senders_signed_digest():
     assert check.check(1, good[10], header_of(good[10]))  # sent twice in the interval: still what 1 signed
 
 
+def test_bytes_a_sender_signed_that_are_no_payload_pass_for_the_decoder_to_drop():
+    """A liar vouching for garbage: authentic, so not a rejection; the decoder drops it as
+    malformed, as in a plain run. The same bytes unvouched are a bad signature."""
+    r = Rejections()
+    check = PayloadCheck(7, r)
+    junk, negative = b"ACOB" + bytes(10), payload(1, 12, -1)
+    assert header_of(junk) is None and header_of(negative) is None
+    check.vouch(with_digests(control(1, 7, [10, 12]), {10: junk, 12: negative}))
+    assert check.check(1, junk, None) and check.check(1, negative, None)
+    assert not check.check(1, b"ACOB" + bytes(11), None)
+    assert r.summary()["by_reason"] == {"bad_signature": 1}
+
+
 def test_the_agent_takes_only_its_row_and_one_verified_message_per_sender(authority, creds):
     """The bundle's row for vehicle 0: vehicle 1's message, then a forgery in 1's slot
     naming 1 (signed by 2), then 2's message; vehicle 2's slot also holds a message

@@ -116,12 +116,13 @@ def encode_objects(sender: int, tick: int, t_sim_s: float, pose: Pose, mount_hei
 
 
 def header_of(payload: bytes) -> tuple[int, int, int] | None:
-    """(sender, object id, tick) from a payload's header; None if it has no valid one."""
+    """(sender, object id, tick) from a payload's header; None if it has no valid one
+    (``decode_object``'s checks but those of the floats)."""
     if len(payload) < HEADER_BYTES:
         return None
     head = _HEADER.unpack_from(payload)
     per_point = _BYTES_PER_POINT_OF.get(head[1])
-    if head[0] != MAGIC or per_point is None or (len(payload) - HEADER_BYTES) % per_point:
+    if head[0] != MAGIC or per_point is None or (len(payload) - HEADER_BYTES) % per_point or head[4] < 0:
         return None
     return head[2], head[3], head[4]
 

@@ -1,11 +1,11 @@
-"""Road maps: a four-arm urban intersection, a straight two-way road, and a corridor of
-intersections along one main road.
+"""Road maps: a four-arm urban intersection, a straight two-way road, a corridor of
+intersections along one main road, and a grid of intersections.
 
 Right-hand traffic. Lane ids read like directions: ``S.in.0`` is the inner (left-turn)
 lane approaching from the south, ``N.out.1`` the outer lane leaving to the north,
-``S.in.0>W`` the connector turning left from it to the west; in a corridor each
-junction's lane ids carry its prefix (``J1:S.in.0``). The union of the ``drivable``
-polygons is the drivable area agents rasterize. A map declares its scheduler domains
+``S.in.0>W`` the connector turning left from it to the west; in a corridor or a grid
+each junction's lane ids carry its prefix (``J1:S.in.0``). The union of the
+``drivable`` polygons is the drivable area agents rasterize. A map declares its scheduler domains
 (``Domain``: centre, radius, channel; docs/domains.md); one that declares none has the
 one default domain around the origin.
 """
@@ -133,22 +133,52 @@ def _junction(m: RoadMap, center: tuple[float, float] = (0.0, 0.0), prefix: str 
 
 def corridor(n: int = 3, spacing_m: float = CORRIDOR_SPACING_M) -> RoadMap:
     """``n`` junctions ``J0``..``J<n-1>`` along a main road on the x axis, ``spacing_m``
-    apart and centred on the origin, each the ``intersection`` (its lights numbered
-    ``4 i`` on). Between two junctions the main road is two arms of half the gap each,
-    joined (``J0:E.out.k`` goes straight on into ``J1:W.in.k``). Junction i is domain i,
-    R/2 around its centre, on channel i mod 2: neighbours never share a channel."""
-    m = RoadMap(f"corridor{n}")
-    half_gap = spacing_m / 2 - BOX_HALF_M
-    xs = (np.arange(n) - (n - 1) / 2) * spacing_m
-    for i, x in enumerate(xs):
-        arms = {"W": ARM_LENGTH_M if i == 0 else half_gap, "E": ARM_LENGTH_M if i == n - 1 else half_gap}
-        _junction(m, (float(x), 0.0), f"J{i}:", 4 * i, arms)
-        m.domains.append(Domain(i, float(x), 0.0, DOMAIN_RADIUS_M, i % 2))
-    for i in range(n - 1):
-        for k in (0, 1):
-            m.straight_on[f"J{i}:E.out.{k}"] = f"J{i + 1}:W.in.{k}"
-            m.straight_on[f"J{i + 1}:W.out.{k}"] = f"J{i}:E.in.{k}"
+    apart and centred on the origin: the one-row ``grid``. Junction i is domain i, R/2
+    around its centre, on channel i mod 2: neighbours never share a channel."""
+    m = _network(1, n, spacing_m)
+    m.name = f"corridor{n}"
     return m
+
+
+def grid(rows: int = 2, cols: int = 2, spacing_m: float = CORRIDOR_SPACING_M) -> RoadMap:
+    """``rows`` x ``cols`` junctions ``spacing_m`` apart and centred on the origin, each
+    the ``intersection``: junction ``J<i>``, i = row * cols + col, rows counted from the
+    south and columns from the west, its lights numbered ``4 i`` on. Neighbours in a row
+    or a column are joined by road segments both ways (``J0:E.out.k`` goes straight on
+    into ``J1:W.in.k``, ``J0:N.out.k`` into ``J<cols>:S.in.k``); the arms at the map's
+    edge are ``ARM_LENGTH_M`` long. Junction i is domain i, R/2 around its centre, on
+    channel (row + col) mod 2, a checkerboard: no two junctions joined by a segment share
+    a channel, diagonal ones do."""
+    m = _network(rows, cols, spacing_m)
+    m.name = f"grid{rows}x{cols}"
+    return m
+
+
+def _network(rows: int, cols: int, spacing_m: float) -> RoadMap:
+    """The junctions of ``grid``, their domains, and the links between them."""
+    m = RoadMap("")
+    half_gap = spacing_m / 2 - BOX_HALF_M  # a segment between two junctions: two arms of half the gap each
+    for r in range(rows):
+        for c in range(cols):
+            i = r * cols + c
+            x, y = (c - (cols - 1) / 2) * spacing_m, (r - (rows - 1) / 2) * spacing_m
+            inner = {"W": c > 0, "E": c < cols - 1, "S": r > 0, "N": r < rows - 1}  # arms toward a neighbour
+            _junction(m, (x, y), f"J{i}:", 4 * i, {a: half_gap if on else ARM_LENGTH_M for a, on in inner.items()})
+            m.domains.append(Domain(i, x, y, DOMAIN_RADIUS_M, (r + c) % 2))
+    for first, second, arm in _neighbours(rows, cols):
+        back = OPPOSITE[arm]
+        for k in (0, 1):
+            m.straight_on[f"J{first}:{arm}.out.{k}"] = f"J{second}:{back}.in.{k}"
+            m.straight_on[f"J{second}:{back}.out.{k}"] = f"J{first}:{arm}.in.{k}"
+    return m
+
+
+def _neighbours(rows: int, cols: int) -> list[tuple[int, int, str]]:
+    """Each pair of junctions joined by a segment: (first, second, the first's arm toward
+    the second), each row's from the west, then each column's from the south."""
+    east = [(r * cols + c, r * cols + c + 1, "E") for r in range(rows) for c in range(cols - 1)]
+    north = [(r * cols + c, (r + 1) * cols + c, "N") for c in range(cols) for r in range(rows - 1)]
+    return east + north
 
 
 def straight_road() -> RoadMap:

@@ -48,10 +48,11 @@ import numpy as np
 from protocol import plugins
 from protocol.messages import VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
-from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, corridor, intersection, straight_road
+from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, corridor, grid, intersection, \
+    straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-NETWORK_SCENARIOS = ("corridor3",)  # several scheduler domains (docs/domains.md), registered below
+NETWORK_SCENARIOS = ("corridor3", "grid4")  # several scheduler domains (docs/domains.md), registered below
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
@@ -356,10 +357,11 @@ def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m:
 def left_turn_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
     """The left-turn event at a junction (lane ids ``prefix`` + ...): the ego turns left
     from ``ego_arm``, the opposite left-turning truck, waiting inside the junction, hides
-    the collider coming straight from the opposite arm and the cars that follow it.
+    the collider coming straight from the opposite arm and the cars that follow it; they
+    drive on straight ahead (``through_route``: on a grid, through the next junction).
     Returns the actors and the conflict point."""
     a, o = ego_arm, OPPOSITE[ego_arm]
-    collider_route = m.route(f"{prefix}{o}.in.1", f"{prefix}{o}.in.1>{a}", f"{prefix}{a}.out.1")
+    collider_route = m.through_route(f"{prefix}{o}.in.1")
     ego, collider, conflict = crossing_actors(
         p, m, m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{LEFT_OF[a]}", f"{prefix}{LEFT_OF[a]}.out.0"),
         collider_route, LEFT_TURN_EGO_KMH)
@@ -432,6 +434,24 @@ def _corridor3(p: ScenarioParams) -> Scenario:
     main_road_green = {0: "red", 2: "red", 1: "green", 3: "green"}  # per junction: S 0, E 1, N 2, W 3
     lights = {4 * j + k: state for j in (0, 2) for k, state in main_road_green.items()}
     lights |= {4 + k: "red" if k % 2 else "green" for k in range(4)}  # J1: the cross street has green
+    return Scenario(p, m, actors, conflict, lights)
+
+
+@register_scenario("grid4", time_limit_s=30.0)
+def _grid4(p: ScenarioParams) -> Scenario:
+    """``left_turn`` at the south-west junction ``J0`` of a 2 x 2 grid (``roadmap.grid``:
+    four domains on channels 0, 1, 1, 0). The ego turns left from ``J0:E``, the segment
+    from ``J1``, onto the southern edge arm; the collider comes straight from the western
+    edge arm and drives on through ``J1``. (The collider and the cars that follow it need
+    an edge arm's 130 m; the ego's 67 m segment holds its 7 s approach up to 40 km/h.) Lights: east-west green at ``J0`` (the ego's
+    road, as at ``corridor3``'s ``J1``) and at ``J1`` (the collider's onward road),
+    north-south green at ``J2`` and ``J3``; the background drives through the junctions
+    where its light is green, across the domains' borders."""
+    m = grid(2, 2)
+    actors, conflict = left_turn_event(p, m, "E", "J0:")
+    green_axis = {0: "EW", 1: "EW", 2: "NS", 3: "NS"}
+    lights = {4 * j + k: "green" if arm in axis else "red"
+              for j, axis in green_axis.items() for k, arm in enumerate("SENW")}  # per junction: S 0, E 1, N 2, W 3
     return Scenario(p, m, actors, conflict, lights)
 
 

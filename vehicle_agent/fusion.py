@@ -660,7 +660,8 @@ def _on_ground(points, counts, objects, cell_m, i0, j0, state, ground):
 
 
 def fuse(grid: Grid, shared: SharedBatch) -> FusedGrid:
-    """Merge placed shared objects into the grid (points outside the grid are ignored)."""
+    """Merge placed shared objects into the grid (points outside the grid are ignored):
+    the tests' reference for ``fused_now``, which the agents fuse with."""
     state = grid.state.copy()
     received = np.zeros_like(grid.drivable)
     on_own = np.zeros(len(shared), dtype=np.bool_)
@@ -671,7 +672,7 @@ def fuse(grid: Grid, shared: SharedBatch) -> FusedGrid:
     return FusedGrid(grid, state, received, shared, on_own)
 
 
-@njit(cache=True)
+@njit  # fuse()'s, a reference for the tests (agents fuse with fused_now): not cached
 def _fuse_points(pts, counts, i0, j0, cell_m, inv, clear_m, own, state, received, on_own):
     """One pass over the stacked points (``counts[o]`` of object o in turn): a point
     above the ground in a grid cell sets it ABOVE in ``state``; it is ``received`` when

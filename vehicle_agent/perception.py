@@ -626,7 +626,7 @@ def _group_by_label(cell_of, valid, flat_labels, k):
     return order, bounds
 
 
-@njit(cache=True)
+@njit  # a reference for the tests (objects take _label_sums and _stats_of apart): not cached
 def _object_stats(pts, bounds):
     """Per label of points grouped by ``_group_by_label``: the xy mean, the yaw of the
     principal axis of the xy covariance, the extent along and across it (relative to

@@ -144,7 +144,7 @@ def _paint_disc(out, y, x, half, radius):
             out[yy, max(x - w, 0):min(x + w + 1, nx)] = True
 
 
-@njit(cache=True)
+@njit  # a reference for the tests (the planner paints discs in _static_blocked_passable): not cached
 def _inflate(obst, radius):
     """Cells within ``radius`` cells (Euclidean) of an obstacle cell: the disc painted
     round each one a row run at a time, not a test per cell of its square."""
@@ -169,7 +169,7 @@ def _passable(blocked, drivable, corridor):
     return passable
 
 
-@njit(cache=True)
+@njit  # a reference for the tests, as _inflate
 def _blocked_passable(static, drivable, corridor, radius):
     """``_inflate(static, radius)`` (the blocked cells) and the passable cells,
     ``drivable & ~blocked & corridor``, in one kernel: replaces the inflation and three

@@ -19,7 +19,7 @@ from world_server.judge import RUN_FIELDS
 from world_server.scenarios import ScenarioError, ScenarioParams, build
 from world_server.sim import Simulation
 
-LEFT_TURN_CONFLICT = (-5.25, math.sqrt(9.75**2 - 2.75**2) - 8.0)  # left_turn's (tests/test_scenarios.py), at J1 = origin
+LEFT_TURN_CONFLICT = (-5.25, math.sqrt(9.75**2 - 2.75**2) - 8.0)  # left_turn's (test_scenarios.py); J1 is the origin
 RED_LIGHT_CONFLICT = (-150.0 + 5.25, -5.25)  # J0 (x = -150): the ego's outer lane x = +5.25, the collider's y = -5.25
 
 
@@ -52,7 +52,7 @@ def test_corridor3x_places_two_events_with_their_own_actors_and_conflict_points(
     assert (left.time_limit_s, red.time_limit_s, s.params.duration_s) == (30.0, 40.0, 40.0)
     # the red light's row of parked trucks (11 at the ego's 40 km/h, as in red_light) follows its collider
     assert [a.role for a in s.actors if a.vid > red.collider] == ["parked"] * 11
-    assert [a.role for a in s.actors if a.connected] == ["ego", "occluder", "ego", "occluder", "background", "background"]
+    assert [a.role for a in s.actors if a.connected] == ["ego", "occluder"] * 2 + ["background"] * 2
     # north-south green at J0 (the red-light ego's) and J1, east-west at J2 (light ids 4 j + S 0, E 1, N 2, W 3)
     assert [s.lights[k] for k in range(12)] == ["green", "red"] * 4 + ["red", "green"] * 2
     assert Simulation(ScenarioParams(scenario="corridor3x", vehicles=4)).mission(2).role == "ego"  # it reports
@@ -145,7 +145,8 @@ def test_a_run_of_several_events_prints_a_line_per_event_then_the_run():
         "collider in the ego's fused view 85% of ticks (700 points mean)  at 9.3 s",
         "red_light@J0 (ego 2, collider 13): outcome: crash  closest distance 0.00 m  reaction time n/a  "
         "collider in the ego's own view 85% of ticks (700 points mean)  at 6.7 s",
-        "outcome: crash (the worst of 2 events: red_light@J0)  [corridor3x, 10 vehicles, seed 0, 94 ticks in 20.0 s wall]"]
+        "outcome: crash (the worst of 2 events: red_light@J0)  "
+        "[corridor3x, 10 vehicles, seed 0, 94 ticks in 20.0 s wall]"]
     single = {k: v for k, v in record.items() if k not in ("event", "events")}
     assert summary(single) == ("outcome: crash  closest distance 0.00 m  reaction time 1.50 s  collider in the ego's "
                                "fused view 85% of ticks (700 points mean)  [corridor3x, 10 vehicles, seed 0, 94 ticks "

@@ -216,6 +216,18 @@ def test_record_of_a_judged_run_keeps_scalars_not_the_series():
     assert len(rec["dead_agents"]) == 40  # long, but kept: dead agents change outcomes
 
 
+def test_record_of_a_run_of_several_events_keeps_each_events_scalars():
+    series = [[0.1 * i, 50.0] for i in range(200)]
+    events = [{"event": name, "outcome": o, "closest_distance_m": d, "distance_series_m": series}
+              for name, o, d in (("left_turn@J1", "safe", 3.7), ("red_light@J0", "crash", 0.0))]
+    outcome = {"outcome": "crash", "event": "red_light@J0", "closest_distance_m": 0.0, "distance_series_m": series,
+               "events": events}
+    rec = plan.record_of(KEY, KEY.name, 1, json.dumps(outcome) + "\n", "", 30.0)
+    assert rec["event"] == "red_light@J0" and "distance_series_m" not in rec
+    assert rec["events"] == [{"event": "left_turn@J1", "outcome": "safe", "closest_distance_m": 3.7},
+                             {"event": "red_light@J0", "outcome": "crash", "closest_distance_m": 0.0}]
+
+
 def test_record_of_a_failed_run_keeps_its_error():
     rec = plan.record_of(KEY, KEY.name, 3, json.dumps({"outcome": None, "failure": "world exited"}) + "\n",
                           "lots\nof\nstderr", 4.0)

@@ -95,7 +95,8 @@ def summary(result: dict) -> str:
         return f"{_judged(result)}  {run}"
     lines = [f"{e['event']} (ego {e['ego']}, collider {e['collider']}): {_judged(e)}  at {e['t_end_s']:.1f} s"
              for e in events]
-    return "\n".join([*lines, f"outcome: {result['outcome']} (the worst of {len(events)} events: {result['event']})  {run}"])
+    worst = f"outcome: {result['outcome']} (the worst of {len(events)} events: {result['event']})"
+    return "\n".join([*lines, f"{worst}  {run}"])
 
 
 def _judged(r: dict) -> str:

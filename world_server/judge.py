@@ -35,8 +35,8 @@ from world_server.geometry import box_corners, count_in_box, project_s, rect_dis
 from world_server.physics import Physics
 from world_server.scenarios import Event, Scenario
 
-RUN_FIELDS = ("scenario", "vehicles", "collider_speed_kmh", "delta_s", "seed")  # of ``result``: the run's, not the event's
-SEVERITY = ("safe", "deadlock", "near_miss", "crash")  # the outcomes, mildest first: a run of several events is its worst's
+RUN_FIELDS = ("scenario", "vehicles", "collider_speed_kmh", "delta_s", "seed")  # ``result``'s that are the run's
+SEVERITY = ("safe", "deadlock", "near_miss", "crash")  # mildest first: a run of several events is its worst event's
 NEAR_MISS_M = 2.0
 DEADLOCK_S = 5.0
 STOPPED_MPS = 0.1

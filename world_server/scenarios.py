@@ -55,7 +55,7 @@ from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, co
     straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-NETWORK_SCENARIOS = ("corridor3", "grid4", "corridor3x")  # several scheduler domains (docs/domains.md), registered below
+NETWORK_SCENARIOS = ("corridor3", "grid4", "corridor3x")  # several domains (docs/domains.md), registered below
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
@@ -640,5 +640,5 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
 
 assert set(_BUILDERS) == set(SCENARIOS) | set(NETWORK_SCENARIOS)
 
-__all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Event", "Actor", "build", "several_events", "builder_of", "register_scenario",
-           "params_from_dict", "load_scenario_file", "SCENARIOS"]
+__all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Event", "Actor", "build", "several_events", "builder_of",
+           "register_scenario", "params_from_dict", "load_scenario_file", "SCENARIOS"]

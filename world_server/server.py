@@ -83,7 +83,7 @@ class WorldServer:
         self._waiting: set[int] = set()
         self._egos = sorted({ev.ego for ev in sim.scenario.events})  # the vehicles that report
         self._reports: dict[int, dict[int, AgentReport]] = {}  # tick -> ego vid -> its fused-view report
-        self._report_tick: dict[int, int] = {}  # per ego, the newest report accepted: with a verifier, an older one is a replay
+        self._report_tick: dict[int, int] = {}  # per ego, the newest report accepted: an older one is a replay
         # the egos' agents report their fused view: lock-step waits for each. Told so up
         # front (--ego-reports), from the first tick; otherwise once an ego's first report
         # has come, and whether that beat the first command was a race that changed the

@@ -147,7 +147,8 @@ class Simulation:
         watching = [(i, judge) for i, judge in enumerate(self.judges) if judge.verdict is None]
         for i, judge in watching:
             xy = fused_xy.get(judge.ego_i)
-            judge.observe_tick(phys, self._collider_in_view[i], None if xy is None else judge.collider_points_in(phys, xy))
+            fused = None if xy is None else judge.collider_points_in(phys, xy)
+            judge.observe_tick(phys, self._collider_in_view[i], fused)
         for _ in range(self.substeps):
             phys.step(self.physics_dt_s)
             for _, judge in watching:

@@ -78,7 +78,7 @@ def _run(args, shm_dir: str) -> int:
         commands = {v: ctl[v].run_step(views[v].pose, views[v].speed_mps, actors[v].route, actors[v].speed_mps)
                     for v in views}
         t = time.thread_time()
-        sim.step(commands, ego_fused_xy=np.zeros((2000, 2)))
+        sim.step(commands, fused_xy={sim.scenario.ego.vid: np.zeros((2000, 2))})
         took["step"] += time.thread_time() - t
         for name, s in took.items():
             ms[name].append(s * 1e3)

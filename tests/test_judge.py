@@ -128,7 +128,7 @@ def test_visibility_over_the_encounter_counts_the_ticks_before_either_passed_the
         centre = np.array([phys.x[col.vid], phys.y[col.vid]])
         seen = centre + np.array([(dx, dy) for dx in (-0.5, 0, 0.5) for dy in (-0.5, 0, 0.5)])
         before += not passed
-        sim.step(cmds, ego_fused_xy=np.empty((0, 2)) if passed else seen)  # judged at this tick's poses
+        sim.step(cmds, fused_xy={0: np.empty((0, 2)) if passed else seen})  # judged at this tick's poses
     r = sim.result()
     assert r["outcome"] == "safe" and 0 < before < sim.tick
     assert r["encounter_ticks"] == before

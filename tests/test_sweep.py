@@ -216,6 +216,18 @@ def test_record_of_a_judged_run_keeps_scalars_not_the_series():
     assert len(rec["dead_agents"]) == 40  # long, but kept: dead agents change outcomes
 
 
+def test_record_of_a_run_of_several_events_keeps_each_events_scalars():
+    series = [[0.1 * i, 50.0] for i in range(200)]
+    events = [{"event": name, "outcome": o, "closest_distance_m": d, "distance_series_m": series}
+              for name, o, d in (("left_turn@J1", "safe", 3.7), ("red_light@J0", "crash", 0.0))]
+    outcome = {"outcome": "crash", "event": "red_light@J0", "closest_distance_m": 0.0, "distance_series_m": series,
+               "events": events}
+    rec = plan.record_of(KEY, KEY.name, 1, json.dumps(outcome) + "\n", "", 30.0)
+    assert rec["event"] == "red_light@J0" and "distance_series_m" not in rec
+    assert rec["events"] == [{"event": "left_turn@J1", "outcome": "safe", "closest_distance_m": 3.7},
+                             {"event": "red_light@J0", "outcome": "crash", "closest_distance_m": 0.0}]
+
+
 def test_record_of_a_failed_run_keeps_its_error():
     rec = plan.record_of(KEY, KEY.name, 3, json.dumps({"outcome": None, "failure": "world exited"}) + "\n",
                           "lots\nof\nstderr", 4.0)
@@ -288,6 +300,40 @@ def test_per_scenario_counts_never_aware_as_zero_reaction():
     assert red_single.runs == 2 and red_single.reaction_mean_s == pytest.approx(0.5)  # (0 + 1) / 2
     assert red_single.closest_min_m == 0.0 and red_single.closest_mean_m == pytest.approx(0.6)
     assert rows[("red_light", "autocast")].outcomes == Counter(safe=1, deadlock=1)
+
+
+def several(scheme, outcome, *events, status="judged"):
+    """A corridor3x record: ``events`` are (outcome, reaction_time_s, closest_distance_m)
+    of left_turn@J1 then red_light@J0; the top level is ``outcome`` (the worst event's)."""
+    names = ("left_turn@J1", "red_light@J0")
+    r = rec(scheme, 10, outcome, "corridor3x")
+    return {**r, "status": status, "events": [{"event": n, "outcome": o, "reaction_time_s": t, "closest_distance_m": d}
+                                              for n, (o, t, d) in zip(names, events)]}
+
+
+def test_per_event_tabulates_each_event_of_the_runs_that_carry_events():
+    recs = RECS + [several("autocast", "crash", ("safe", 2.0, 5.0), ("crash", None, 0.0)),
+                   several("autocast", "near_miss", ("near_miss", 1.0, 1.5), ("safe", 3.0, 6.0)),
+                   several("single", "crash", ("crash", 0.5, 0.0), ("crash", None, 0.0)),
+                   several("autocast", "crash", ("crash", 0.1, 0.0), ("crash", 0.1, 0.0), status="failed")]
+    rows = report.per_event(recs)
+    assert set(rows) == {("corridor3x", e, s) for e in ("left_turn@J1", "red_light@J0") for s in ("single", "autocast")}
+    left = rows[("corridor3x", "left_turn@J1", "autocast")]
+    assert left.runs == 2 and left.outcomes == Counter(safe=1, near_miss=1)  # the failed run is not counted
+    assert (left.reaction_mean_s, left.closest_mean_m, left.closest_min_m) == (1.5, 3.25, 1.5)
+    red = rows[("corridor3x", "red_light@J0", "autocast")]
+    assert red.outcomes == Counter(crash=1, safe=1) and red.reaction_mean_s == 1.5  # never aware counts 0 s
+    assert report.per_scenario(recs)[("corridor3x", "autocast")].outcomes == Counter(crash=1, near_miss=1)
+    md = report.per_event_md(recs)
+    assert md[0] == ("| scenario | event | scheme | judged | safe | near miss | crash | deadlock | reaction mean (s) "
+                     "| closest mean (m) | closest min (m) |")
+    assert md[2:] == ["| corridor3x | left_turn@J1 | single | 1 | 0 | 0 | 1 | 0 | 0.50 | 0.00 | 0.00 |",
+                      "| corridor3x | left_turn@J1 | autocast | 2 | 1 | 1 | 0 | 0 | 1.50 | 3.25 | 1.50 |",
+                      "| corridor3x | red_light@J0 | single | 1 | 0 | 0 | 1 | 0 | 0.00 | 0.00 | 0.00 |",
+                      "| corridor3x | red_light@J0 | autocast | 2 | 1 | 0 | 1 | 0 | 1.50 | 3.00 | 0.00 |"]
+    title = "## Per event: runs of several events"
+    assert title in report.summary_md(Path("sweep"), recs, None, {}, None, "")
+    assert title not in report.summary_md(Path("sweep"), RECS, None, {}, None, "")
 
 
 def sent(rewards, delays_ms):

@@ -33,7 +33,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m world_server", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sc = ap.add_argument_group("scenario")
-    sc.add_argument("--scenario", default=None, help="overtaking | left_turn | red_light (default left_turn)")
+    sc.add_argument("--scenario", default=None, help="overtaking | left_turn | red_light (default left_turn); "
+                    "corridor3 | grid4 | corridor3x: several junctions (docs/domains.md)")
     sc.add_argument("--vehicles", type=int, default=None, help="connected vehicles in range, ego included (default 10)")
     sc.add_argument("--collider-speed", type=float, default=None, metavar="KMH", help="collider base speed (default 30)")
     sc.add_argument("--delta", type=float, default=None, metavar="SECONDS",
@@ -49,7 +50,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="wall time an agent may take for one tick before it is declared dead")
     ap.add_argument("--startup-timeout-s", type=float, default=120.0)
     ap.add_argument("--ego-reports", action="store_true",
-                    help="the ego agent reports its fused view every tick: lock-step waits for it from the first tick")
+                    help="each event's ego agent reports its fused view every tick: lock-step waits for it from "
+                         "the first tick")
     ap.add_argument("--wait-for", nargs="+", default=[], metavar="NAME",
                     help="also wait, before tick 0, for each named participant's liveliness token "
                          "ac/<run>/alive/p/NAME (a process that must see the run from its first tick)")
@@ -81,16 +83,28 @@ def _file_fields(path: str) -> dict:
 
 
 def summary(result: dict) -> str:
-    react, closest = result["reaction_time_s"], result["closest_distance_m"]
+    """The outcome in one line; a run of several events: a line per event, then the run's
+    (its worst event's outcome)."""
     if result["outcome"] is None:
         return f"not judged: {result.get('failure')}  [{result['scenario']}, {result['vehicles']} vehicles, " \
                f"seed {result['seed']}, {result['ticks']} ticks]"
-    return (f"outcome: {result['outcome']}  closest distance {'n/a' if closest is None else f'{closest:.2f} m'}  "
+    run = (f"[{result['scenario']}, {result['vehicles']} vehicles, seed {result['seed']}, "
+           f"{result['ticks']} ticks in {result['wall_s']:.1f} s wall]")
+    events = result.get("events")
+    if not events:
+        return f"{_judged(result)}  {run}"
+    lines = [f"{e['event']} (ego {e['ego']}, collider {e['collider']}): {_judged(e)}  at {e['t_end_s']:.1f} s"
+             for e in events]
+    worst = f"outcome: {result['outcome']} (the worst of {len(events)} events: {result['event']})"
+    return "\n".join([*lines, f"{worst}  {run}"])
+
+
+def _judged(r: dict) -> str:
+    react, closest = r["reaction_time_s"], r["closest_distance_m"]
+    return (f"outcome: {r['outcome']}  closest distance {'n/a' if closest is None else f'{closest:.2f} m'}  "
             f"reaction time {'n/a' if react is None else f'{react:.2f} s'}  "
-            f"collider in the ego's {'fused' if result['visibility_source'] == 'fused' else 'own'} view "
-            f"{100 * result['collider_visible_share']:.0f}% of ticks ({result['collider_points_mean']:.0f} points mean)  "
-            f"[{result['scenario']}, {result['vehicles']} vehicles, seed {result['seed']}, "
-            f"{result['ticks']} ticks in {result['wall_s']:.1f} s wall]")
+            f"collider in the ego's {'fused' if r['visibility_source'] == 'fused' else 'own'} view "
+            f"{100 * r['collider_visible_share']:.0f}% of ticks ({r['collider_points_mean']:.0f} points mean)")
 
 
 def main(argv: list[str] | None = None) -> int:

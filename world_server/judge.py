@@ -19,6 +19,9 @@ measured the same way, over the whole run (``collider_visible_share``, the paper
 the ticks before the ego or the collider had passed the conflict point, while the
 collider could still matter to the ego. A scheme that stops sending the collider once it
 is behind the ego scores lower on the first, not on the second.
+
+A scenario of several events (``scenarios.Event``) has one judge per event, each watching
+its own ego and collider about its own conflict point.
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ import numpy as np
 
 from world_server.geometry import box_corners, count_in_box, project_s, rect_distance
 from world_server.physics import Physics
-from world_server.scenarios import Scenario
+from world_server.scenarios import Event, Scenario
 
+RUN_FIELDS = ("scenario", "vehicles", "collider_speed_kmh", "delta_s", "seed")  # ``result``'s that are the run's
+SEVERITY = ("safe", "deadlock", "near_miss", "crash")  # mildest first: a run of several events is its worst event's
 NEAR_MISS_M = 2.0
 DEADLOCK_S = 5.0
 STOPPED_MPS = 0.1
@@ -41,6 +46,7 @@ AWARE_MIN_POINTS = 5
 @dataclass
 class Judge:
     scenario: Scenario
+    event: Event | None = None  # None: the scenario's first
     near_miss_m: float = NEAR_MISS_M
     deadlock_s: float = DEADLOCK_S
     closest_m: float = math.inf
@@ -61,10 +67,11 @@ class Judge:
 
     def __post_init__(self) -> None:
         sc = self.scenario
-        self.ego_i, self.col_i = sc.ego.vid, sc.collider.vid
-        self._ego, self._col = sc.ego, sc.collider  # not looked up by role at every tick
-        self._ego_conflict_s = project_s(sc.ego.route, sc.conflict_xy)
-        self._col_conflict_s = project_s(sc.collider.route, sc.conflict_xy)
+        ev = self.event = self.event or sc.events[0]  # ``scenarios.build`` gives every scenario its events
+        self._ego, self._col, conflict = sc.actor(ev.ego), sc.actor(ev.collider), ev.conflict_xy
+        self.ego_i, self.col_i = self._ego.vid, self._col.vid  # not looked up at every tick
+        self._ego_conflict_s = project_s(self._ego.route, conflict)
+        self._col_conflict_s = project_s(self._col.route, conflict)
 
     def _distance(self, phys: Physics) -> float:
         """Gap between the ego's and the collider's bodies."""
@@ -186,3 +193,10 @@ class Judge:
             "near_miss_m": self.near_miss_m,
             "distance_series_m": self.distances,
         }
+
+    def event_result(self) -> dict:
+        """``result`` of this judge's event alone: its name, junction, ego and collider,
+        then the judge's fields without the run's parameters (``RUN_FIELDS``)."""
+        ev = self.event
+        return {"event": ev.name, "junction": ev.junction, "ego": ev.ego, "collider": ev.collider,
+                **{k: v for k, v in self.result().items() if k not in RUN_FIELDS}}

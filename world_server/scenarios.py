@@ -27,7 +27,10 @@ speed along its lane, it never comes near an actor or another kept vehicle withi
 scenario's duration, so the background adds occlusion and channel load, not crashes.
 
 A scenario is a builder ``(ScenarioParams) -> Scenario`` that places the ego, the
-occluder and the collider; ``build`` adds the background. Builders are found by name
+occluder and the collider; ``build`` adds the background. A scenario may hold several
+occlusion events (``Event``: an ego, its occluder, a collider, a conflict point and a
+time window each), built each by its event builder as if alone and joined by
+``several_events``; ``corridor3x`` has two (docs/domains.md). Builders are found by name
 (``register_scenario``) or by import path (``--scenario mypkg.scenes:merge``), so a
 user's scenario runs in the world process without editing this file
 (docs/extending.md).
@@ -52,7 +55,7 @@ from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, co
     straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-NETWORK_SCENARIOS = ("corridor3", "grid4")  # several scheduler domains (docs/domains.md), registered below
+NETWORK_SCENARIOS = ("corridor3", "grid4", "corridor3x")  # several domains (docs/domains.md), registered below
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
@@ -173,13 +176,36 @@ class Actor:
         return float(self.route[0, 0]), float(self.route[0, 1]), math.atan2(d[1], d[0])
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Event:
+    """One occlusion event of a scenario, judged on its own (``world_server.judge``): its
+    ego (connected, role ``ego``), the truck that hides the collider from it (``occluder``),
+    the passive collider (``collider``), the point where the ego's and the collider's routes
+    cross, and its time window: from t = 0 to ``time_limit_s`` of sim time (the run's
+    duration, if shorter), by which it is judged a deadlock (or a near miss) if nothing
+    else was decided."""
+
+    name: str  # unique within its scenario: "red_light@J0"; a scenario of one event: the scenario's name
+    junction: str  # where it happens ("J0"); "" on a map of one junction
+    ego: int  # vids
+    occluder: int
+    collider: int
+    conflict_xy: np.ndarray
+    time_limit_s: float
+
+
 @dataclass(slots=True)
 class Scenario:
+    """The actors at t = 0, the map, the lights and the events. ``conflict_xy``, ``ego``
+    and ``collider`` are the first event's (vids 0 and ``params.vehicles``); a builder
+    that names no ``events`` has that one event (``build`` adds it)."""
+
     params: ScenarioParams
     roadmap: RoadMap
     actors: list[Actor]
     conflict_xy: np.ndarray
     lights: dict[int, str] = field(default_factory=dict)
+    events: list[Event] = field(default_factory=list)
 
     @property
     def ego(self) -> Actor:
@@ -190,7 +216,11 @@ class Scenario:
         return self._role("collider")
 
     def _role(self, role: str) -> Actor:
-        return next(a for a in self.actors if a.role == role)
+        """The lowest-numbered actor of ``role``: the first event's."""
+        return min((a for a in self.actors if a.role == role), key=lambda a: a.vid)
+
+    def actor(self, vid: int) -> Actor:
+        return next(a for a in self.actors if a.vid == vid)
 
     def connected(self) -> list[Actor]:
         return [a for a in self.actors if a.connected]
@@ -199,9 +229,10 @@ class Scenario:
         """The world-driven vehicles: the collider, parked trucks, traffic."""
         return [a for a in self.actors if not a.connected]
 
-    def arrival_s(self, actor: Actor) -> float:
-        """When ``actor`` reaches the conflict point driving its route at its speed."""
-        s = project_s(actor.route, self.conflict_xy)
+    def arrival_s(self, actor: Actor, conflict_xy: np.ndarray | None = None) -> float:
+        """When ``actor`` reaches the conflict point (the first event's, or ``conflict_xy``)
+        driving its route at its speed."""
+        s = project_s(actor.route, self.conflict_xy if conflict_xy is None else conflict_xy)
         return s / actor.speed_mps if actor.speed_mps > 0 else math.inf
 
 
@@ -245,7 +276,10 @@ def register_scenario(name: str, time_limit_s: float = DEFAULT_TIME_LIMIT_S) -> 
     (vid 1, connected), the collider (vid ``params.vehicles``, not connected, its route
     crossing the ego's at ``conflict_xy``), optionally more unconnected actors (vids
     ``params.vehicles + 1`` on, in order) and the lights; ``build`` adds
-    ``params.vehicles - 2`` background vehicles around ``conflict_xy``.
+    ``params.vehicles - 2`` background vehicles around ``conflict_xy``. A scenario of
+    several events (``events``) places each further event's ego and occluder as the next
+    connected vids (2, 3, ...; ``several_events``) and its collider among the unconnected
+    ones; the background then fills the connected vids after them.
     """
     def add(builder: Builder) -> Builder:
         if name in _BUILDERS:
@@ -276,24 +310,58 @@ def build(params: ScenarioParams) -> Scenario:
     """Place every actor for ``params``; deterministic in ``params.seed``."""
     scenario = builder_of(params.scenario)(params)
     _check_roles(scenario, params)
+    _check_events(scenario, params)
     _add_background(scenario, np.random.default_rng(params.seed))
     return scenario
 
 
 def _check_roles(scenario: Scenario, p: ScenarioParams) -> None:
     """A builder's actors fit what the world, the judge and the launcher rely on."""
-    roles = {a.role: a for a in scenario.actors}
+    roles: dict[str, Actor] = {}
+    for a in sorted(scenario.actors, key=lambda a: a.vid):
+        roles.setdefault(a.role, a)  # the first event's
     want = {"ego": (0, True), "occluder": (1, True), "collider": (p.vehicles, False)}
     for role, (vid, connected) in want.items():
         actor = roles.get(role)
         if actor is None or actor.vid != vid or actor.connected != connected:
             raise ScenarioError(f"scenario: {p.scenario!r} must place the {role} as vid {vid}"
                                 f"{'' if connected else ', not connected'}")
-    extra = sorted(a.vid for a in scenario.actors if a.role not in want)
-    if extra != list(range(p.vehicles + 1, p.vehicles + 1 + len(extra))) or \
-            any(a.connected for a in scenario.actors if a.role not in want):
+    connected = sorted(a.vid for a in scenario.actors if a.connected)
+    if connected != list(range(len(connected))) or \
+            any(a.role not in ("ego", "occluder") for a in scenario.actors if a.connected):
+        raise ScenarioError(f"scenario: {p.scenario!r} must place its connected actors, each event's ego and "
+                            f"occluder, as vids 0 to {len(connected) - 1}")
+    if len(connected) > p.vehicles:
+        raise ScenarioError(f"vehicles: {p.scenario} places {len(connected)} connected vehicles (an ego and an "
+                            f"occluder for each event), asked for {p.vehicles}")
+    passive = sorted(a.vid for a in scenario.actors if not a.connected)
+    if passive != list(range(p.vehicles, p.vehicles + len(passive))) or \
+            any(a.role in ("ego", "occluder") for a in scenario.actors if not a.connected):
         raise ScenarioError(f"scenario: {p.scenario!r} must place its other actors unconnected, "
                             f"as vids {p.vehicles + 1} on")
+
+
+def _check_events(scenario: Scenario, p: ScenarioParams) -> None:
+    """Each event names its own ego, occluder and collider by their roles; a builder that
+    names none has one: the first ego's, the first occluder's and the first collider's."""
+    if not scenario.events:
+        scenario.events = [Event(p.scenario, "", scenario.ego.vid, scenario._role("occluder").vid,
+                                 scenario.collider.vid, scenario.conflict_xy, p.duration_s)]
+    by_vid = {a.vid: a for a in scenario.actors}
+    for ev in scenario.events:
+        for role in ("ego", "occluder", "collider"):
+            vid = getattr(ev, role)
+            if vid not in by_vid or by_vid[vid].role != role:
+                raise ScenarioError(f"scenario: {p.scenario!r}: event {ev.name!r}'s {role} (vid {vid}) is no {role}")
+    first = scenario.events[0]
+    if (first.ego, first.collider) != (scenario.ego.vid, scenario.collider.vid) or \
+            not np.array_equal(first.conflict_xy, scenario.conflict_xy):
+        raise ScenarioError(f"scenario: {p.scenario!r}: the first event must be the scenario's ego, collider "
+                            "and conflict point")
+    for what in ("name", "ego", "collider"):
+        values = [getattr(ev, what) for ev in scenario.events]
+        if len(set(values)) != len(values):
+            raise ScenarioError(f"scenario: {p.scenario!r}: two events share their {what}")
 
 
 def _speeds(p: ScenarioParams, ego_default_kmh: float) -> tuple[float, float]:
@@ -381,24 +449,57 @@ def _left_turn(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, actors, conflict, lights)
 
 
-@register_scenario("red_light", time_limit_s=40.0)
-def _red_light(p: ScenarioParams) -> Scenario:
-    """Ego goes straight north on green; a red-light runner comes from its left, hidden by a
-    row of parked trucks in the ego's left lane and the truck waiting at the junction."""
-    m = intersection()
+def red_light_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
+    """The red-light event at a junction (lane ids ``prefix`` + ...): the ego goes straight
+    on from ``ego_arm`` in its outer lane; the collider runs the red from the ego's left in
+    that approach's outer lane and drives on straight ahead (``through_route``), hidden by
+    the connected truck waiting to turn left in the ego's left lane and the row of parked
+    trucks behind it. Returns the actors and the conflict point."""
+    a, left = ego_arm, LEFT_OF[ego_arm]
     ego, collider, conflict = crossing_actors(
-        p, m, m.route("S.in.1", "S.in.1>N", "N.out.1"), m.route("W.in.1", "W.in.1>E", "E.out.1"), RED_LIGHT_EGO_KMH)
-    truck_route = m.route("S.in.0", "S.in.0>W", "W.out.0")
-    stop = m.lanes["S.in.0"].stop_s_m
+        p, m, m.route(f"{prefix}{a}.in.1", f"{prefix}{a}.in.1>{OPPOSITE[a]}", f"{prefix}{OPPOSITE[a]}.out.1"),
+        m.through_route(f"{prefix}{left}.in.1"), RED_LIGHT_EGO_KMH)
+    truck_route = m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{left}", f"{prefix}{left}.out.0")
+    stop = m.lanes[f"{prefix}{a}.in.0"].stop_s_m
     truck = waiting_truck(truck_route, stop + RED_LIGHT_TRUCK_INTO_BOX_M)
-    lane = m.lanes["S.in.0"].centerline
+    lane = m.lanes[f"{prefix}{a}.in.0"].centerline
     s_truck = stop + RED_LIGHT_TRUCK_INTO_BOX_M - BOX_TRUCK.length_m / 2
     s_first = project_s(lane, ego.route[0]) + PARKED_ROW_FROM_M
     row = []
     for k, s in enumerate(np.arange(s_truck - PARKED_ROW_PITCH_M, s_first - 1e-9, -PARKED_ROW_PITCH_M)):
         row.append(Actor(p.vehicles + 1 + k, "parked", "box_truck", _trim(lane, float(s)), 0.0, False))
+    return [ego, truck, collider, *row], conflict
+
+
+def several_events(p: ScenarioParams, events: list[tuple[str, str, tuple[list[Actor], np.ndarray]]]
+                   ) -> tuple[list[Actor], list[Event]]:
+    """Join events, each ``(kind, junction, (actors, conflict point))`` as its event builder
+    placed it alone (ego 0, occluder 1, collider ``p.vehicles``, the rest from
+    ``p.vehicles + 1``), into one scenario's actors: event k's ego and occluder become vids
+    2k and 2k + 1, its unconnected actors follow the earlier events' in order. Each event's
+    time window is its own scenario's limit (``kind``'s, e.g. left_turn 30 s)."""
+    actors: list[Actor] = []
+    out: list[Event] = []
+    next_passive = p.vehicles
+    for k, (kind, junction, (placed, conflict)) in enumerate(events):
+        vids = {0: 2 * k, 1: 2 * k + 1}
+        for j, vid in enumerate(sorted(a.vid for a in placed if not a.connected)):
+            vids[vid] = next_passive + j
+        next_passive += len(vids) - 2
+        actors += [dataclasses.replace(a, vid=vids[a.vid]) for a in placed]
+        out.append(Event(f"{kind}@{junction}", junction, 2 * k, 2 * k + 1, vids[p.vehicles], conflict,
+                         time_limit_s(kind)))
+    return actors, out
+
+
+@register_scenario("red_light", time_limit_s=40.0)
+def _red_light(p: ScenarioParams) -> Scenario:
+    """Ego goes straight north on green; a red-light runner comes from its left, hidden by a
+    row of parked trucks in the ego's left lane and the truck waiting at the junction."""
+    m = intersection()
+    actors, conflict = red_light_event(p, m, "S")
     lights = {0: "green", 2: "green", 1: "red", 3: "red"}
-    return Scenario(p, m, [ego, truck, collider, *row], conflict, lights)
+    return Scenario(p, m, actors, conflict, lights)
 
 
 @register_scenario("overtaking", time_limit_s=40.0)
@@ -422,6 +523,13 @@ def _overtaking(p: ScenarioParams) -> Scenario:
     return Scenario(p, m, [ego, truck, collider, *traffic], conflict, {})
 
 
+def _lights(green_axis: dict[int, str]) -> dict[int, str]:
+    """Every light of a corridor or grid, junction j's approaches on ``green_axis[j]`` ("NS" or
+    "EW") green and the others red (per junction, light ids 4 j + S 0, E 1, N 2, W 3)."""
+    return {4 * j + k: "green" if arm in axis else "red" for j, axis in green_axis.items()
+            for k, arm in enumerate("SENW")}
+
+
 @register_scenario("corridor3", time_limit_s=30.0)
 def _corridor3(p: ScenarioParams) -> Scenario:
     """``left_turn`` at the middle junction ``J1`` of a corridor of three
@@ -431,10 +539,23 @@ def _corridor3(p: ScenarioParams) -> Scenario:
     borders."""
     m = corridor(3)
     actors, conflict = left_turn_event(p, m, "S", "J1:")
-    main_road_green = {0: "red", 2: "red", 1: "green", 3: "green"}  # per junction: S 0, E 1, N 2, W 3
-    lights = {4 * j + k: state for j in (0, 2) for k, state in main_road_green.items()}
-    lights |= {4 + k: "red" if k % 2 else "green" for k in range(4)}  # J1: the cross street has green
-    return Scenario(p, m, actors, conflict, lights)
+    return Scenario(p, m, actors, conflict, _lights({0: "EW", 1: "NS", 2: "EW"}))
+
+
+@register_scenario("corridor3x", time_limit_s=max(time_limit_s("left_turn"), time_limit_s("red_light")))
+def _corridor3x(p: ScenarioParams) -> Scenario:
+    """Two of the paper's events on one corridor of three, each judged on its own:
+    ``left_turn`` at ``J1`` as in ``corridor3`` (ego 0, truck 1, collider ``p.vehicles``)
+    and ``red_light`` at ``J0`` (ego 2 going north from ``J0:S``, truck 3, the collider
+    running the red from ``J0:W`` and on along the main road). Lights: north-south green at
+    ``J0`` (the red-light ego's) and ``J1`` (the left turn's), the main road green at
+    ``J2``. The run lasts until both are judged, at most 40 s (red_light's limit; the left
+    turn's window closes at 30 s)."""
+    m = corridor(3)
+    actors, events = several_events(p, [("left_turn", "J1", left_turn_event(p, m, "S", "J1:")),
+                                        ("red_light", "J0", red_light_event(p, m, "S", "J0:"))])
+    lights = _lights({0: "NS", 1: "NS", 2: "EW"})
+    return Scenario(p, m, actors, events[0].conflict_xy, lights, events)
 
 
 @register_scenario("grid4", time_limit_s=30.0)
@@ -449,10 +570,7 @@ def _grid4(p: ScenarioParams) -> Scenario:
     where its light is green, across the domains' borders."""
     m = grid(2, 2)
     actors, conflict = left_turn_event(p, m, "E", "J0:")
-    green_axis = {0: "EW", 1: "EW", 2: "NS", 3: "NS"}
-    lights = {4 * j + k: "green" if arm in axis else "red"
-              for j, axis in green_axis.items() for k, arm in enumerate("SENW")}  # per junction: S 0, E 1, N 2, W 3
-    return Scenario(p, m, actors, conflict, lights)
+    return Scenario(p, m, actors, conflict, _lights({0: "EW", 1: "EW", 2: "NS", 3: "NS"}))
 
 
 # ------------------------------------------------------------------------ background
@@ -499,9 +617,9 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
             candidates.append((lane_id, float(s), moving))
     order = rng.permutation(len(candidates))
     kinds = rng.random(len(candidates)) < TRUCK_SHARE
-    vid = 2
+    first = vid = p.vehicles - n_needed  # after the events' egos and occluders
     for idx in order:
-        if vid - 2 >= n_needed:
+        if vid - first >= n_needed:
             break
         lane_id, s, moving = candidates[idx]
         kind = "truck" if kinds[idx] else "car"
@@ -514,7 +632,7 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
         kept.append((cand, sweep))
         scenario.actors.append(cand)
         vid += 1
-    if vid - 2 < n_needed:
+    if vid - first < n_needed:
         raise ScenarioError(f"vehicles: only {vid} connected vehicles fit the {p.scenario} scene, "
                             f"asked for {p.vehicles}")
     scenario.actors.sort(key=lambda a: a.vid)
@@ -522,5 +640,5 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
 
 assert set(_BUILDERS) == set(SCENARIOS) | set(NETWORK_SCENARIOS)
 
-__all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Actor", "build", "builder_of", "register_scenario",
-           "params_from_dict", "load_scenario_file", "SCENARIOS"]
+__all__ = ["ScenarioParams", "ScenarioError", "Scenario", "Event", "Actor", "build", "several_events", "builder_of",
+           "register_scenario", "params_from_dict", "load_scenario_file", "SCENARIOS"]

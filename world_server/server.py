@@ -14,7 +14,10 @@ one it has not subscribed yet is lost), and every participant named in ``wait_fo
 holds its token ``keys.participant_alive``: a process that is not an agent but must see
 the run from tick 0 (a test's hostile peer) says so, whatever the machine's speed.
 
-Authenticity (``verifier``): with the run's authority key, a command (and the ego's
+Reports: each event's ego agent reports its fused view every tick (``AgentReport`` on
+``keys.report``), for its event's judge; a scenario of several events has several.
+
+Authenticity (``verifier``): with the run's authority key, a command (and an ego's
 report) is accepted only as a ``Signed`` envelope by that vehicle's certificate, of a
 tick newer than the last one accepted from it; anything else is dropped and counted by
 reason (``protocol.security``), and the counts go into the result as ``rejected``.
@@ -78,15 +81,15 @@ class WorldServer:
         # when it is the last of these (one wake-up a tick, not one per command)
         self._waiting_tick = -1
         self._waiting: set[int] = set()
-        self._reports: dict[int, AgentReport] = {}  # the ego's fused-view report per tick
-        self._report_tick = -1  # the newest report accepted: with a verifier, an older one is a replay
-        # the ego agent reports its fused view: lock-step waits for it. Told so up front
-        # (--ego-reports), from the first tick; otherwise once a first report has come,
-        # and whether that beat the first command was a race that changed the judged
-        # visibility share of identical runs
-        self._ego_reports = ego_reports
+        self._egos = sorted({ev.ego for ev in sim.scenario.events})  # the vehicles that report
+        self._reports: dict[int, dict[int, AgentReport]] = {}  # tick -> ego vid -> its fused-view report
+        self._report_tick: dict[int, int] = {}  # per ego, the newest report accepted: an older one is a replay
+        # the egos' agents report their fused view: lock-step waits for each. Told so up
+        # front (--ego-reports), from the first tick; otherwise once an ego's first report
+        # has come, and whether that beat the first command was a race that changed the
+        # judged visibility share of identical runs
+        self._reporting: set[int] = set(self._egos) if ego_reports else set()
         self._expected = set(sim.connected_vids)
-        self._ego = sim.scenario.ego.vid
         self._live = set(self._expected)
         # the tokens besides the agents' that tick 0 waits for: liveliness key -> name
         self._awaited = {keys.participant_alive(run_id, name): name for name in wait_for}
@@ -127,7 +130,8 @@ class WorldServer:
             s.declare_queryable(keys.world_map(run), on_map),
             s.declare_queryable(keys.mission(run, "*"), on_mission),
             s.declare_subscriber(keys.cmd(run, "*"), self._handler(Command, self._on_cmd)),
-            s.declare_subscriber(keys.report(run, self.sim.scenario.ego.vid), self._handler(AgentReport, self._on_report)),
+            *(s.declare_subscriber(keys.report(run, ego), self._handler(AgentReport, self._on_report))
+              for ego in self._egos),
             s.liveliness().declare_subscriber(keys.alive(run, "*"), self._on_token, history=True),
         ]
         self._entities += [s.liveliness().declare_subscriber(key, self._on_awaited, history=True)
@@ -182,13 +186,18 @@ class WorldServer:
             self._cv.notify_all()
 
     def _on_report(self, key: str, report: AgentReport) -> None:
+        vid = keys.vid_of(key)
+        if vid != report.vid:
+            self.drops.add(key, ValueError(f"report of vid {report.vid} on another vehicle's key"))
+            return
         with self._cv:
-            if self.verifier is not None and report.tick <= self._report_tick:
+            newest = self._report_tick.get(vid, -1)
+            if self.verifier is not None and report.tick <= newest:
                 self.verifier.rejections.add(key, "replayed", f"report of tick {report.tick}")
                 return
-            self._report_tick = max(self._report_tick, report.tick)
-            self._reports[report.tick] = report
-            self._ego_reports = True
+            self._report_tick[vid] = max(newest, report.tick)
+            self._reports.setdefault(report.tick, {})[vid] = report
+            self._reporting.add(vid)
             self._cv.notify_all()
 
     def _mark_dead(self, vid: int, why: str) -> None:
@@ -261,10 +270,10 @@ class WorldServer:
         else:
             commands = self._collect_lockstep(k)
         with self._cv:
-            report = self._reports.pop(k, None)
+            reports = self._reports.pop(k, {})
             self._reports = {t: r for t, r in self._reports.items() if t > k}
         phases.mark("world.commands_in", k)
-        sim.step(commands, ego_fused_xy=None if report is None else report.fused_xy)
+        sim.step(commands, fused_xy={vid: r.fused_xy for vid, r in reports.items()})
         self.stats.ticks += 1
         phases.mark("world.stepped", k)
 
@@ -274,8 +283,8 @@ class WorldServer:
             while not self._stopping.is_set():
                 waiting = [v for v in self._live if self._cmds.get(v) is None or self._cmds[v].tick < k]
                 self._waiting_tick, self._waiting = k, set(waiting)
-                ego = self._ego
-                report_due = self._ego_reports and ego in self._live and k not in self._reports
+                had = self._reports.get(k, {})
+                report_due = any(v in self._live and v not in had for v in self._reporting)
                 if not waiting and not report_due:
                     break
                 left = deadline - time.monotonic()

@@ -5,6 +5,10 @@ when its built-in driver brakes for what it sees); ``step`` applies the agents'
 commands, drives the passive vehicles (the collider and the traffic behind it; parked
 ones hold still), and advances physics by the decision interval in fixed physics steps
 while the judge watches. Deterministic for a scenario and seed.
+
+A scenario of several events has a judge per event (``judges``): each watches its event
+until it is judged, then keeps its record as it was; the run is done when every event is
+judged, each at the latest when its time window closes.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import numpy as np
 
 from protocol.messages import LidarConfig, LightState, Mission, Pose, WorldTruth
 from world_server import driver, lidar
-from world_server.judge import Judge
+from world_server.judge import SEVERITY, Judge
 from world_server.physics import Physics
 from world_server.scenarios import Scenario, ScenarioParams, build
 
@@ -53,10 +57,17 @@ class Simulation:
                                np.array([a.speed_mps for a in actors]))
         self.heights_m = np.array([a.spec.height_m for a in actors])
         self.mount_m = np.array([a.mount_height_m for a in actors])
-        self.judge = Judge(self.scenario)
+        events = self.scenario.events
+        self.judges = [Judge(self.scenario, ev) for ev in events]
+        self.judge = self.judges[0]  # the first event's
+        self._windows_s = [min(ev.time_limit_s, params.duration_s) for ev in events]
+        self._judges_of: dict[int, list[int]] = {}  # an event's ego -> its judges' indices
+        for i, ev in enumerate(events):
+            self._judges_of.setdefault(ev.ego, []).append(i)
+        self._braking = [ev.collider for ev in events if self.scenario.actor(ev.collider).brake_lengths > 0]
+        self._collider_points: dict[int, np.ndarray] = {}  # a braking collider's LiDAR points this tick, for its driver
+        self._collider_in_view = [0] * len(events)  # per event: the collider's returns in its ego's own scan
         self.tick = 0
-        self._collider_points: np.ndarray | None = None  # its LiDAR's points this tick, for its driver
-        self._collider_in_ego_view = 0
         self._passive = self.scenario.passive()
         self._connected = np.array(self.connected_vids, dtype=np.int64)
 
@@ -79,32 +90,30 @@ class Simulation:
         return [LightState(i, s) for i, s in sorted(self.scenario.lights.items())]
 
     def sense(self, vids: Iterable[int]) -> dict[int, Sensed]:
-        """LiDAR scans of ``vids`` plus the collider's, when its driver needs it."""
+        """LiDAR scans of ``vids`` plus the colliders', when their driver needs them."""
         return {v.vid: v for v in self.sense_each(vids)}
 
     def sense_each(self, vids: Iterable[int]) -> Iterator[Sensed]:
         """``sense``, one vehicle at a time as each scan is cast, in the order of ``vids``
         (the world publishes each scan at once, so agents start while it casts the rest).
-        The collider's scan, for its driver (only if it brakes for anything), is cast
-        last; consume the whole iterator."""
-        col = self.scenario.collider.vid
-        wanted = [v for v in dict.fromkeys(vids) if v != col]
-        if self.scenario.collider.brake_lengths > 0:
-            wanted.append(col)
+        The colliders' scans, for their driver (only of those that brake for anything),
+        are cast last; consume the whole iterator."""
+        braking = set(self._braking)
+        wanted = [v for v in dict.fromkeys(vids) if v not in braking] + self._braking
         boxes = np.vstack([self.physics.boxes(self.heights_m), self.scenario.roadmap.buildings])
         poses = self.physics.poses()
         prepared = lidar.prepare_boxes(boxes)
-        ego = self.scenario.ego.vid
-        self._collider_in_ego_view = 0
+        self._collider_in_view = [0] * len(self.judges)
         for vid in wanted:
             x, y, yaw = poses[vid]
             mount_m = float(self.mount_m[vid])
-            if vid == col:
-                self._collider_points = lidar.scan_prepared(prepared, poses[vid], mount_m, self.lidar_cfg, vid).points
+            if vid in braking:
+                self._collider_points[vid] = lidar.scan_prepared(prepared, poses[vid], mount_m, self.lidar_cfg,
+                                                                 vid).points
                 continue
             image = lidar.range_image_prepared(prepared, poses[vid], mount_m, self.lidar_cfg, vid)
-            if vid == ego:
-                self._collider_in_ego_view = int(image.box_hits[col])
+            for i in self._judges_of.get(vid, ()):
+                self._collider_in_view[i] = int(image.box_hits[self.judges[i].col_i])
             yield Sensed(vid, Pose(float(x), float(y), float(yaw)), float(self.physics.v[vid]), image.range_cm)
 
     def truth(self) -> WorldTruth:
@@ -115,12 +124,13 @@ class Simulation:
                           boxes[:, 3:6].astype(np.float32))
 
     def step(self, commands: Mapping[int, tuple[float, float]], dead: Iterable[int] = (),
-             ego_fused_xy: np.ndarray | None = None) -> None:
+             fused_xy: Mapping[int, np.ndarray] | None = None) -> None:
         """Apply commands for this tick and advance physics by one decision interval.
 
         A connected vehicle without a command (its agent is dead) gets the failsafe:
-        full brake, wheels straight. ``ego_fused_xy`` is the ego agent's reported fused
-        view for this tick (world points), for the judge's visibility metrics.
+        full brake, wheels straight. ``fused_xy`` holds, by ego vid, each event's ego
+        agent's reported fused view for this tick (world points), for its judge's
+        visibility metrics; an ego that reported nothing is judged on its own scan.
         """
         phys = self.physics
         ids = self._connected
@@ -133,18 +143,23 @@ class Simulation:
                 accel[j], steer[j] = -phys.max_brake[vid], 0.0
         phys.command_many(ids, accel, steer)
         self._drive_passive()
-        fused = None if ego_fused_xy is None else self.judge.collider_points_in(phys, ego_fused_xy)
-        self.judge.observe_tick(phys, self._collider_in_ego_view, fused)
+        fused_xy = fused_xy or {}
+        watching = [(i, judge) for i, judge in enumerate(self.judges) if judge.verdict is None]
+        for i, judge in watching:
+            xy = fused_xy.get(judge.ego_i)
+            fused = None if xy is None else judge.collider_points_in(phys, xy)
+            judge.observe_tick(phys, self._collider_in_view[i], fused)
         for _ in range(self.substeps):
             phys.step(self.physics_dt_s)
-            self.judge.observe_step(phys)
+            for _, judge in watching:
+                judge.observe_step(phys)
         self.tick += 1
-        self._collider_points = None
+        self._collider_points = {}
 
     def _drive_passive(self) -> None:
         """Commands for the world-driven vehicles (driver.py)."""
-        phys, col = self.physics, self.scenario.collider
-        if col.brake_lengths > 0 and self._collider_points is None:
+        phys = self.physics
+        if any(v not in self._collider_points for v in self._braking):
             self.sense([])
         outline = owner = None
         for a in self._passive:
@@ -152,8 +167,8 @@ class Simulation:
             horizon = max(a.brake_lengths * a.spec.length_m, 1.0)
             if a.speed_mps <= 0.0 or a.brake_lengths <= 0.0:
                 gap = np.inf
-            elif a is col:
-                gap = driver.free_distance_ahead(self._collider_points, a.spec, a.mount_height_m, horizon)
+            elif i in self._collider_points:
+                gap = driver.free_distance_ahead(self._collider_points[i], a.spec, a.mount_height_m, horizon)
             else:
                 if outline is None:
                     outline, owner = driver.outline_points(phys.boxes(self.heights_m))
@@ -164,12 +179,20 @@ class Simulation:
 
     @property
     def done(self) -> bool:
-        if self.judge.verdict is not None:
-            return True
-        if self.t_sim_s >= self.params.duration_s - 1e-9:
-            self.judge.time_out(self.t_sim_s)
-            return True
-        return False
+        """Every event judged; an event whose time window has closed is judged now."""
+        for judge, window_s in zip(self.judges, self._windows_s):
+            if judge.verdict is None and self.t_sim_s >= window_s - 1e-9:
+                judge.time_out(self.t_sim_s)
+        return all(judge.verdict is not None for judge in self.judges)
 
     def result(self) -> dict:
-        return self.judge.result()
+        """The judged outcome. One event: its judge's record. Several: the worst event's
+        record (``judge.SEVERITY``: crash, near miss, deadlock, safe; an event not judged
+        yet counts worse than a crash; the earlier event on a tie), ``event`` naming it,
+        and ``events``: every event's own record (``Judge.event_result``), in order."""
+        if len(self.judges) == 1:
+            return self.judge.result()
+        worst = max(self.judges, key=lambda j: SEVERITY.index(j.verdict) if j.verdict in SEVERITY else len(SEVERITY))
+        record = worst.result()
+        return {"outcome": record["outcome"], "event": worst.event.name, **record,
+                "events": [judge.event_result() for judge in self.judges]}

@@ -22,8 +22,9 @@ For interval (tick) k of a V2V run:
 - **collider to the ego**: the ego decoded (``DataBundle.decoded[ego row]`` on
   ``net/data/rx``) a reception of tick k that is such an object (sender and object id).
 
-The ego is the vehicle whose ``Mission`` says role "ego" (vid 0 when none is recorded);
-the collider's vid is the run's vehicle count (metadata ``autocast`` -> ``vehicles``).
+The ego is the vehicle whose ``Mission`` says role "ego" (vid 0 when none is recorded; of
+a scenario of several events, the first event's: the lowest such vid); the collider's vid
+is the run's vehicle count (metadata ``autocast`` -> ``vehicles``), the first event's.
 
 EMP runs have no control messages and their uploads go over the 50 Mbps V2I relay, not
 the V2V channel: their load fields are NaN, and only the collider's delivery is given,
@@ -145,6 +146,7 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
     collider = int(meta["vehicles"])  # the passive collider's vid (bench.relevance)
     profile = meta.get("channel_profile") or DEFAULT_PROFILE
     ego = EGO
+    egos: list[int] = []  # the vids whose missions say "ego"
     ticks: set[int] = set()
     truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tick -> (x, y, yaw), (length, width)
     offered, wanted, size = defaultdict(int), defaultdict(int), defaultdict(int)
@@ -185,7 +187,8 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
                 truth[msg.tick] = (msg.pose[hit[0]].astype(np.float64), msg.size_m[hit[0], :2].astype(np.float64))
         elif isinstance(msg, Mission):
             if msg.role == "ego":
-                ego = msg.vid
+                egos.append(msg.vid)
+                ego = min(egos)
         elif isinstance(msg, ChannelStats):
             has_channel = True
             data = msg.stats.get("data")

@@ -438,23 +438,29 @@ def append_record(path: Path, record: dict[str, Any]) -> None:
 
 def record_of(key: RunKey, run_id: str, exit_code: int, stdout: str, stderr: str, wall_s: float,
               extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The results line of a finished run: its key, status, and the outcome's scalar fields;
-    a run without a judged outcome keeps its exit code, failure and stderr tail."""
+    """The results line of a finished run: its key, status, and the outcome's scalar fields
+    (of a scenario of several events also ``events``, each event's scalar fields); a run
+    without a judged outcome keeps its exit code, failure and stderr tail."""
     result = _last_json(stdout)
     judged = result is not None and result.get("outcome") is not None and exit_code in (0, 1)
     rec: dict[str, Any] = {"run_key": key.name, **asdict(key), "run_id": run_id,
                            "status": "judged" if judged else "failed", "exit_code": exit_code,
                            "outcome": result.get("outcome") if result else None, "wall_total_s": round(wall_s, 2),
                            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    for k, v in (result or {}).items():
-        if k not in rec and (k in ALWAYS_KEPT or len(json.dumps(v)) <= BIG_RESULT_CHARS):
-            rec[k] = v
+    rec.update({k: v for k, v in _short(result or {}).items() if k not in rec})
+    if isinstance((result or {}).get("events"), list):
+        rec["events"] = [_short(e) for e in result["events"] if isinstance(e, dict)]
     rec.update(extra or {})
     if not judged:
         failure = (result or {}).get("failure") or (f"exit code {exit_code} without an outcome" if result is None
                                                      else f"exit code {exit_code}")
         rec["error"] = {"exit_code": exit_code, "failure": failure, "stderr_tail": stderr[-STDERR_TAIL_CHARS:]}
     return rec
+
+
+def _short(fields: Mapping[str, Any]) -> dict[str, Any]:
+    """The fields no longer than ``BIG_RESULT_CHARS`` as JSON, and ``ALWAYS_KEPT``."""
+    return {k: v for k, v in fields.items() if k in ALWAYS_KEPT or len(json.dumps(v)) <= BIG_RESULT_CHARS}
 
 
 def _last_json(stdout: str) -> dict[str, Any] | None:

@@ -14,7 +14,8 @@ Writes into ``SWEEP_DIR/report/`` (``--out``):
 - ``load_vs_density.png``: offered load over the channel's capacity, and the collider's
   delivery to the ego beside its visibility, vs density (``deploy.experiments.load``; each run's
   figures cached in ``SWEEP_DIR/report/load/<run id>.json``)
-- ``summary.md``: the tables, with "safe passage % by scheme x density"
+- ``summary.md``: the tables, with "safe passage % by scheme x density", and outcomes
+  per event for the runs of a scenario of several events (records with ``events``)
 
 A plot without data says so instead of failing. Exit code 0, or 2 when the directory
 holds no sweep.
@@ -125,17 +126,29 @@ class ScenarioRow:
 
 
 def per_scenario(records: Sequence[dict[str, Any]]) -> dict[tuple[str, str], ScenarioRow]:
-    """(scenario, scheme) -> outcomes, reaction time, closest distance of its judged runs."""
+    """(scenario, scheme) -> outcomes, reaction time, closest distance of its judged runs
+    (a run of several events by its top-level fields: its worst event's)."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
     for r in judged(records):
         groups[(r["scenario"], r["scheme"])].append(r)
-    out = {}
-    for k, g in groups.items():
-        reaction = [r.get("reaction_time_s") or 0.0 for r in g]
-        closest = [r["closest_distance_m"] for r in g]
-        out[k] = ScenarioRow(len(g), Counter(r["outcome"] for r in g), statistics.fmean(reaction), max(reaction),
-                             statistics.fmean(closest), min(closest))
-    return out
+    return {k: _row(g) for k, g in groups.items()}
+
+
+def per_event(records: Sequence[dict[str, Any]]) -> dict[tuple[str, str, str], ScenarioRow]:
+    """(scenario, event, scheme) -> the same figures per event, from the judged runs whose
+    record carries ``events`` (a scenario of several events: each entry is one event's)."""
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
+    for r in judged(records):
+        for e in r.get("events") or ():
+            groups[(r["scenario"], e["event"], r["scheme"])].append(e)
+    return {k: _row(g) for k, g in groups.items()}
+
+
+def _row(g: Sequence[dict[str, Any]]) -> ScenarioRow:
+    reaction = [r.get("reaction_time_s") or 0.0 for r in g]
+    closest = [r["closest_distance_m"] for r in g]
+    return ScenarioRow(len(g), Counter(r["outcome"] for r in g), statistics.fmean(reaction), max(reaction),
+                       statistics.fmean(closest), min(closest))
 
 
 # ---------------------------------------------------------------------------- scheduled delay
@@ -701,6 +714,35 @@ def safe_table_md(records: Sequence[dict[str, Any]]) -> list[str]:
     return _md(["scheme", *[f"{n} vehicles" for n in densities], "all"], rows)
 
 
+def _outcome_cells(row: ScenarioRow) -> list[Any]:
+    return [row.runs, *[row.outcomes[o] for o in OUTCOMES], f"{row.reaction_mean_s:.2f}", f"{row.closest_mean_m:.2f}",
+            f"{row.closest_min_m:.2f}"]
+
+
+OUTCOME_COLUMNS = ("judged", *[o.replace("_", " ") for o in OUTCOMES], "reaction mean (s)", "closest mean (m)",
+                   "closest min (m)")
+
+
+def per_scenario_md(records: Sequence[dict[str, Any]]) -> list[str]:
+    table = per_scenario(records)
+    return _md(["scenario", "scheme", *OUTCOME_COLUMNS],
+               [[sc, s, *_outcome_cells(row)]
+                for (sc, s), row in sorted(table.items(), key=lambda kv: (kv[0][0], _order(kv[0][1])))])
+
+
+def per_event_md(records: Sequence[dict[str, Any]]) -> list[str]:
+    """Rows by scenario, then its events in the records' order, then scheme."""
+    table = per_event(records)
+    order: dict[tuple[str, str], int] = {}
+    for r in judged(records):
+        for e in r.get("events") or ():
+            order.setdefault((r["scenario"], e["event"]), len(order))
+    return _md(["scenario", "event", "scheme", *OUTCOME_COLUMNS],
+               [[sc, ev, s, *_outcome_cells(row)]
+                for (sc, ev, s), row in sorted(table.items(), key=lambda kv: (kv[0][0], order[kv[0][:2]],
+                                                                               _order(kv[0][2])))])
+
+
 def coverage(records: Sequence[dict[str, Any]], plan: dict[str, Any] | None) -> str:
     """What the directory holds against its last plan. A directory can hold several plans'
     runs (a sweep widened or narrowed later, e.g. more densities for one scenario), and
@@ -757,13 +799,14 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
 
     lines += ["", "## Per scenario: outcomes, reaction time, closest distance", "",
               "Reaction time: from the ego's first view of the collider to the last moment braking could still "
-              "stop it; a run in which that never happened counts 0 s.", ""]
-    table = per_scenario(records)
-    lines += _md(["scenario", "scheme", "judged", *[o.replace("_", " ") for o in OUTCOMES],
-                  "reaction mean (s)", "closest mean (m)", "closest min (m)"],
-                 [[sc, s, row.runs, *[row.outcomes[o] for o in OUTCOMES], f"{row.reaction_mean_s:.2f}",
-                   f"{row.closest_mean_m:.2f}", f"{row.closest_min_m:.2f}"]
-                  for (sc, s), row in sorted(table.items(), key=lambda kv: (kv[0][0], _order(kv[0][1])))])
+              "stop it; a run in which that never happened counts 0 s. A run of several events counts as its "
+              "worst event (below, each event apart).", ""]
+    lines += per_scenario_md(records)
+    if per_event(records):
+        lines += ["", "## Per event: runs of several events", "",
+                  "Each event of a scenario with several (docs/domains.md) judged on its own: its ego, its "
+                  "collider, its conflict point.", ""]
+        lines += per_event_md(records)
 
     lines += ["", f"## Scheduled delay vs reward ({f'{delay_vehicles} vehicles' if delay_vehicles else 'no V2V runs'})",
               "", delay_note, ""]

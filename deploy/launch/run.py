@@ -10,8 +10,9 @@ business), stops everything (SIGINT, grace, SIGKILL; the world first, the record
 last) and prints the outcome.
 
 Outputs: ``runs/<id>/run.mcap``, ``runs/<id>/outcome.json``, ``runs/<id>/pids.json``,
-``runs/<id>/logs/<process>.log``. Exit code: 0 safe passage, 1 another judged outcome,
-2 bad input, 3 the run failed without an outcome, 130 interrupted (Ctrl-C).
+``runs/<id>/logs/<process>.log``. Exit code: 0 safe passage, 1 another judged outcome
+(of a scenario of several events, its worst event's), 2 bad input, 3 the run failed
+without an outcome, 130 interrupted (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -104,7 +105,8 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
 
     ap = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     sc = ap.add_argument_group("scenario (python -m world_server --help)")
-    sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn)")
+    sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn); "
+                    "corridor3 | grid4 | corridor3x: several junctions (docs/domains.md)")
     sc.add_argument("--vehicles", default="10", help="connected vehicles in range, ego included (default 10)")
     sc.add_argument("--collider-speed", default="30", metavar="KMH", help="the collider's speed (default 30)")
     sc.add_argument("--delta", default="0", metavar="SECONDS",

@@ -17,6 +17,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -88,8 +89,11 @@ def test_a_child_that_exits_before_its_spawn_is_answered_is_still_reaped(factory
 
     def reply_read_after_the_exit_is_reported() -> dict:
         reply = read_reply()
-        select.select([factory._sock], [], [], 60.0)  # the exit report is the next message
-        factory.pump(0.0)
+        deadline = time.monotonic() + 60.0  # a safety net: the exit report is the next message
+        while reply["pid"] not in factory._unclaimed and time.monotonic() < deadline:
+            select.select([factory._sock], [], [], deadline - time.monotonic())  # (read with the reply, or later)
+            factory.pump(0.0)
+        assert reply["pid"] in factory._unclaimed  # the exit is known before the child is registered
         return reply
 
     factory._reply = reply_read_after_the_exit_is_reported

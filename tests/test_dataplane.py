@@ -831,6 +831,50 @@ def test_encoding_a_senders_objects_at_once_equals_encoding_each():
         encode_objects(9, 33, 3.3, pose, 1.9, ids, centroids, velocities, far, counts)
 
 
+def _world_objects(rng, counts, spread_m):
+    """A sender's pose and objects around it in the world: centroids (float64), points
+    (float32, object after object), velocities."""
+    pose = Pose(float(rng.normal(0, 300)), float(rng.normal(0, 300)), float(rng.uniform(-7, 7)))
+    centroids = np.column_stack([pose.x_m + rng.normal(0, 60, len(counts)), pose.y_m + rng.normal(0, 60, len(counts)),
+                                 rng.uniform(-1, 3, len(counts))])
+    world = (np.repeat(centroids, counts, axis=0) + rng.normal(0, spread_m, (int(counts.sum()), 3))).astype(np.float32)
+    return pose, centroids, world, rng.normal(0, 5, (len(counts), 2))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_encoding_objects_from_the_world_in_one_pass_equals_taking_them_to_the_sensor_first(seed):
+    """encode_world_objects gives encode_objects' bytes of the points world_to_sensor
+    gives, rounded to float32: ties on the half centimetre, far objects, a point beyond
+    int16 (refused alike) and a NaN (encode_objects' own values) among them."""
+    from vehicle_agent.payload import encode_objects, encode_world_objects
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 300, int(rng.integers(1, 12))).astype(np.int64)
+    pose, centroids, world, velocities = _world_objects(rng, counts, float(rng.uniform(0.1, 40)))
+    if seed % 4 == 1:  # axes along the world's, everything on the half-centimetre grid: rint's ties
+        pose, centroids = Pose(round(pose.x_m), round(pose.y_m), 0.0), np.round(centroids * 200) / 200
+        world = (np.round(world * 200) / 200).astype(np.float32)
+    ids = [int(i) for i in rng.integers(0, 1 << 31, len(counts))]
+    if seed % 10 == 3 and counts.sum():
+        world[int(rng.integers(counts.sum())), 0] += 400.0  # one object spans more than 327 m
+    if seed % 10 == 7 and counts.sum():
+        world[int(rng.integers(counts.sum())), 1] = np.nan
+
+    def reference():
+        sensor = world_to_sensor(world.astype(np.float64), pose, 1.9).astype(np.float32)
+        return encode_objects(4, 21, 2.1, pose, 1.9, ids, world_to_sensor(centroids, pose, 1.9).astype(np.float32),
+                              velocities.astype(np.float32), sensor, counts)
+
+    with np.errstate(invalid="ignore"):  # a NaN cast to int16 (encode_objects casts it, either way)
+        try:
+            want = reference()
+        except ValueError:
+            with pytest.raises(ValueError):
+                encode_world_objects(4, 21, 2.1, pose, 1.9, ids, centroids, velocities, world, counts)
+            return
+        assert encode_world_objects(4, 21, 2.1, pose, 1.9, ids, centroids, velocities, world, counts) == want
+
+
 class _DictStore:
     """The received-object store one dict entry per object, as it was before the store
     became arrays: the slower reference."""

@@ -24,7 +24,8 @@ from vehicle_agent.domains import GUARD_BAND_M, DomainTable
 from vehicle_agent.paths import arc_lengths, progress_along
 from vehicle_agent.frames import check_fits, ray_tables, scan_to_world, world_to_sensor
 from vehicle_agent.fusion import MAX_AGE_S, FusedGrid, ReceivedStore, SharedBatch, SharedObject, fused_now
-from vehicle_agent.payload import column_thinned, decode_objects, encode_objects, payload_size
+from vehicle_agent.payload import (BYTES_PER_POINT, column_thinned, decode_objects, encode_objects,
+                                   encode_world_objects, payload_size)
 from vehicle_agent.perception import (DrivableRaster, Grid, GridSpec, build_grid, extract_objects, scan_grid,
                                       scan_objects)
 from vehicle_agent.spatial import match_vehicles, relevance, visible
@@ -371,7 +372,8 @@ class DataPlane:
 
     def payloads(self, view: View, object_ids: list[int]) -> dict[int, bytes]:
         """The encoded point clouds of the given tracked objects (``encode_object`` of
-        each, all of their points taken to our sensor frame at once)."""
+        each, all of their points taken to our sensor frame at once; in our model's
+        int16 coding, taken there and encoded in one pass: ``encode_world_objects``)."""
         with self._timed("encoding"):
             if not object_ids:
                 return {}
@@ -384,16 +386,18 @@ class DataPlane:
             else:
                 starts = np.cumsum(counts) - counts
                 points_of = [points[starts[k]:starts[k] + counts[k]] for k in rows]
-            world = np.concatenate(points_of).astype(np.float64)
-            pts = world_to_sensor(world, view.pose, self.mount_m)
-            centroids = world_to_sensor(np.array([[t.xy[0], t.xy[1], t.detection.centroid[2]] for t in tracks]),
-                                        view.pose, self.mount_m)
-            encoded = encode_objects(self.mission.vid, view.tick, view.t_sim_s, view.pose, self.mount_m, object_ids,
-                                     centroids.astype(np.float32),
-                                     np.array([t.velocity for t in tracks]).astype(np.float32),
-                                     pts.astype(np.float32),
-                                     np.array([len(p) for p in points_of], dtype=np.int64),
-                                     self.model.bytes_per_point)
+            centroids = np.array([[t.xy[0], t.xy[1], t.detection.centroid[2]] for t in tracks])
+            velocities = np.array([t.velocity for t in tracks])
+            sizes = np.array([len(p) for p in points_of], dtype=np.int64)
+            if self.model.bytes_per_point == BYTES_PER_POINT:  # to the sensor frame and encoded in one pass
+                encoded = encode_world_objects(self.mission.vid, view.tick, view.t_sim_s, view.pose, self.mount_m,
+                                               object_ids, centroids, velocities, np.concatenate(points_of), sizes)
+            else:
+                pts = world_to_sensor(np.concatenate(points_of).astype(np.float64), view.pose, self.mount_m)
+                centroids_sensor = world_to_sensor(centroids, view.pose, self.mount_m).astype(np.float32)
+                encoded = encode_objects(self.mission.vid, view.tick, view.t_sim_s, view.pose, self.mount_m,
+                                         object_ids, centroids_sensor, velocities.astype(np.float32),
+                                         pts.astype(np.float32), sizes, self.model.bytes_per_point)
         return dict(zip(object_ids, encoded))
 
     def _offered(self, view: View) -> tuple[np.ndarray | None, np.ndarray]:

@@ -21,7 +21,7 @@ from protocol import keys
 from protocol.codec import MalformedMessage, decode, encode
 from protocol.messages import Command, ControlMsg, CtrlBundle, DataTx, ObjectMap, Pose, Reception, Signed
 from protocol.security import (VERDICTS_DIR, Authority, Credentials, PayloadCheck, Rejections, Signer, Verdicts,
-                               Verifier, with_digests)
+                               VerdictTable, Verifier, with_digests)
 from protocol.session import DropCounter
 from vehicle_agent.agreement import HeardControl
 from vehicle_agent.guard import CTRL_STREAM, DATA_STREAM, Guard
@@ -242,7 +242,7 @@ def test_vehicles_on_a_host_share_what_they_found_authentic_and_check_the_rest_a
             DATA_STREAM: {"bad_signature": 1}}
     assert all(isinstance(m, HeardControl) for m in heard)
     tables = list((tmp_path / VERDICTS_DIR / "4").iterdir())
-    assert len(tables) == 1 and sorted(int(f.name, 16) >> 48 for f in tables[0].iterdir()) == [0, 3]
+    assert len(tables) == 1 and VerdictTable(str(tables[0])).places() == [0, 3]
 
 
 def test_what_a_table_lists_counts_only_for_its_own_bundle(authority, creds, tmp_path):
@@ -271,6 +271,24 @@ def test_verdicts_are_shared_only_where_nobody_else_may_write(tmp_path):
     tmp_path.chmod(0o700)
     assert Verdicts.open(tmp_path) is not None
     assert (tmp_path / VERDICTS_DIR).stat().st_mode & 0o777 == 0o700
+
+
+def test_a_tables_record_is_taken_whole_and_in_its_place_or_not_at_all(tmp_path):
+    """A record read while it is being written (part of it still zero) or found at
+    another frame's place lists nothing; a whole one lists its frame's span."""
+    path = str(tmp_path / "4" / "bundle")
+    VerdictTable(path).put(3, 100, 200)
+    VerdictTable(path).put(3, 100, 200)  # a second receiver writes the same record
+    whole = VerdictTable(path)._record(5, 7, 9)
+    with open(path, "r+b") as f:
+        for place, record in ((5, whole[:8] + bytes(8)), (6, bytes(8) + whole[8:]), (7, whole),
+                              (8, whole[:4] + bytes(4) + whole[8:])):
+            f.seek(VerdictTable.RECORD * place)
+            f.write(record)
+    table = VerdictTable(path)
+    assert table.places() == [3] and table.get(3) == (100, 200) and table.get(7) is None
+    assert table.has(3, 100, 200) and not table.has(3, 100, 201) and not table.has(4, 100, 200)
+    assert VerdictTable(str(tmp_path / "none")).places() == []
 
 
 # ---------------------------------------------------------------------------- the medium reads, never checks

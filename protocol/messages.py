@@ -321,7 +321,7 @@ def _no_counts() -> np.ndarray:
     return np.zeros(0, dtype=np.int64)
 
 
-DIGEST_BYTES = 16  # BLAKE2b-128 of an object's payload (protocol.security.payload_digest)
+DIGEST_BYTES = 16  # SHA-256 of an object's payload, its first 128 bits (protocol.security.payload_digest)
 
 
 def _no_digests() -> np.ndarray:

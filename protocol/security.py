@@ -262,9 +262,10 @@ class Verdicts:
         return Verdicts(directory)
 
     def table(self, tick: int, frames: list[bytes], sweep: bool = False) -> VerdictTable:
-        """The shared verdicts on interval ``tick``'s bundle of ``frames``, as they stand.
-        ``sweep``: also remove those of the intervals before the last (lock-step: every
-        receiver is past them); one receiver an interval sweeps, in turn."""
+        """The shared verdicts on interval ``tick``'s bundle of ``frames``, as they stand,
+        open (``VerdictTable.close``). ``sweep``: also remove those of the intervals
+        before the last (lock-step: every receiver is past them); one receiver an
+        interval sweeps, in turn."""
         if sweep:
             try:
                 old = [e.name for e in os.scandir(self.directory) if e.name.isdigit() and int(e.name) < tick - 1]
@@ -272,7 +273,7 @@ class Verdicts:
                 old = []
             for name in old:
                 shutil.rmtree(self.directory / name, ignore_errors=True)
-        return VerdictTable(f"{self.directory}/{tick}/{bundle_name(frames)}")
+        return VerdictTable(f"{self.directory}/{tick}/{bundle_name(frames)}", len(frames))
 
 
 def bundle_name(frames: list[bytes]) -> str:
@@ -293,35 +294,60 @@ class VerdictTable:
     written, half of it zero, fails the complement unless it is whole. The table is read
     once, in one read (a directory holding a name per frame, listed and each name parsed,
     took 2.5 times as long); a frame not in it yet is looked up again (``has``) before
-    the receiver checks it itself, and added (``put``) if it passes."""
+    the receiver checks it itself, and added (``put``) if it passes.
+
+    A receiver about to check a frame itself first marks it (``claim``: a byte per place
+    after the records), so that another receiver reaching it meanwhile checks its other
+    frames first and looks it up again after (``claimed``): two receivers that reached
+    the same frame together no longer check every following frame together. A mark is
+    a hint, never a verdict: a frame still not listed when its turn comes again is
+    checked by whoever reaches it. The file stays open until ``close``."""
 
     RECORD = 16
+    PLACES = 1 << 16  # a bundle's frames at most (CtrlBundle's items are far fewer)
+    CLAIMS_AT = RECORD * PLACES
     _FIELD = (1 << 24) - 1
     _ONES = (1 << 64) - 1
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, places: int | None = None) -> None:
+        """``places``: the bundle's frames (None: as many as the file holds records for)."""
         self.path = path
         self._words: dict[int, int] = {}
+        self._fd: int | None = None
+        for _ in range(2):
+            try:
+                self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+                break
+            except FileNotFoundError:
+                try:
+                    os.makedirs(os.path.dirname(path), mode=0o700, exist_ok=True)
+                except OSError:
+                    return
+            except OSError:
+                return
+        if self._fd is None:
+            return
         try:
-            fd = os.open(path, os.O_RDONLY)
+            if places is None:
+                places = min(os.fstat(self._fd).st_size, self.CLAIMS_AT) // self.RECORD
+            data = os.pread(self._fd, self.RECORD * min(places, self.PLACES), 0)
         except OSError:
             return
-        chunks = []
-        try:
-            while True:  # 256 places a read (a read of more than the file allocates all it asks for)
-                chunk = os.read(fd, 4096)
-                chunks.append(chunk)
-                if len(chunk) < 4096 or len(chunks) >= 256:  # 0xFFFF places at most (put)
-                    break
-        except OSError:
-            chunks = []
-        finally:
-            os.close(fd)
-        data = b"".join(chunks)
         words, ones = array("Q", data[:len(data) - len(data) % self.RECORD]), self._ONES
         for place, (word, complement) in enumerate(zip(words[0::2], words[1::2])):
             if word ^ complement == ones and word >> 48 == place:  # whole, and in its place
                 self._words[place] = word
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> VerdictTable:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def __len__(self) -> int:
         return len(self._words)
@@ -338,6 +364,9 @@ class VerdictTable:
         word = self._word(at, off, n)
         return word.to_bytes(8, sys.byteorder) + (word ^ self._ONES).to_bytes(8, sys.byteorder)  # as read
 
+    def _fits(self, at: int, off: int, n: int) -> bool:
+        return self._fd is not None and at < self.PLACES and off <= self._FIELD and n <= self._FIELD
+
     def get(self, at: int) -> tuple[int, int] | None:
         """Where frame ``at``'s body lies (offset, length), if it was listed when read."""
         word = self._words.get(at)
@@ -346,42 +375,35 @@ class VerdictTable:
     def has(self, at: int, off: int, n: int) -> bool:
         """Whether frame ``at`` (its body ``n`` bytes at ``off``) was found authentic since
         the table was read."""
-        if at > 0xFFFF or off > self._FIELD or n > self._FIELD:
-            return False
         try:
-            fd = os.open(self.path, os.O_RDONLY)
+            return self._fits(at, off, n) and os.pread(self._fd, self.RECORD, self.RECORD * at) == \
+                self._record(at, off, n)
         except OSError:
             return False
-        try:
-            return os.pread(fd, self.RECORD, self.RECORD * at) == self._record(at, off, n)
-        except OSError:
-            return False
-        finally:
-            os.close(fd)
 
     def put(self, at: int, off: int, n: int) -> None:
         """Record that frame ``at`` is authentic, its body ``n`` bytes at ``off`` (every
         receiver that records it writes the same record)."""
-        if at > 0xFFFF or off > self._FIELD or n > self._FIELD:
-            return
-        for _ in range(2):
+        if self._fits(at, off, n):
             try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT, 0o600)
-            except FileNotFoundError:
-                try:
-                    os.makedirs(os.path.dirname(self.path), mode=0o700, exist_ok=True)
-                except OSError:
-                    return
-                continue
-            except OSError:
-                return
-            try:
-                os.pwrite(fd, self._record(at, off, n), self.RECORD * at)
+                os.pwrite(self._fd, self._record(at, off, n), self.RECORD * at)
             except OSError:
                 pass
-            finally:
-                os.close(fd)
-            return
+
+    def claimed(self, at: int) -> bool:
+        """Whether another receiver has marked frame ``at`` as being checked."""
+        try:
+            return self._fits(at, 0, 0) and os.pread(self._fd, 1, self.CLAIMS_AT + at) == b"\x01"
+        except OSError:
+            return False
+
+    def claim(self, at: int) -> None:
+        """Mark frame ``at`` as being checked by this receiver."""
+        if self._fits(at, 0, 0):
+            try:
+                os.pwrite(self._fd, b"\x01", self.CLAIMS_AT + at)
+            except OSError:
+                pass
 
 
 class Verifier:

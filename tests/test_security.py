@@ -277,18 +277,46 @@ def test_a_tables_record_is_taken_whole_and_in_its_place_or_not_at_all(tmp_path)
     """A record read while it is being written (part of it still zero) or found at
     another frame's place lists nothing; a whole one lists its frame's span."""
     path = str(tmp_path / "4" / "bundle")
-    VerdictTable(path).put(3, 100, 200)
-    VerdictTable(path).put(3, 100, 200)  # a second receiver writes the same record
-    whole = VerdictTable(path)._record(5, 7, 9)
+    for _ in range(2):  # a second receiver writes the same record
+        with VerdictTable(path) as table:
+            table.put(3, 100, 200)
+            whole = table._record(5, 7, 9)
     with open(path, "r+b") as f:
         for place, record in ((5, whole[:8] + bytes(8)), (6, bytes(8) + whole[8:]), (7, whole),
                               (8, whole[:4] + bytes(4) + whole[8:])):
             f.seek(VerdictTable.RECORD * place)
             f.write(record)
-    table = VerdictTable(path)
-    assert table.places() == [3] and table.get(3) == (100, 200) and table.get(7) is None
-    assert table.has(3, 100, 200) and not table.has(3, 100, 201) and not table.has(4, 100, 200)
-    assert VerdictTable(str(tmp_path / "none")).places() == []
+    with VerdictTable(path) as table:
+        assert table.places() == [3] and table.get(3) == (100, 200) and table.get(7) is None
+        assert table.has(3, 100, 200) and not table.has(3, 100, 201) and not table.has(4, 100, 200)
+        table.claim(9)  # a mark is no record
+    with VerdictTable(path, 10) as table:
+        assert table.places() == [3] and table.claimed(9) and not table.claimed(3)
+    with VerdictTable(str(tmp_path / "none")) as table:
+        assert table.places() == []
+
+
+def test_frames_another_vehicle_is_checking_are_checked_after_the_others_alike(authority, creds, tmp_path):
+    """Every frame of the bundle marked as being checked by a vehicle that never lists
+    it (it stalled, or they are forgeries): a vehicle checks the others first, then
+    these itself, a sender's frames in their order, and hears, drops and takes exactly
+    what a vehicle checking alone does."""
+    bundle, payloads, forged = _forgeries_bundle(authority, creds)
+    tmp_path.chmod(0o700)
+    verdicts = Verdicts.open(tmp_path)
+    with verdicts.table(4, bundle.messages) as table:
+        for at in range(len(bundle.messages)):
+            table.claim(at)
+    received = [Reception(1, 10, 0.01, payloads[10]), Reception(2, 20, 0.02, payloads[20]),
+                Reception(1, 10, 0.03, forged)]
+    alone, shared = Guard(creds[0], DropCounter()), Guard(creds[0], DropCounter(), verdicts)
+    for guard in (alone, shared):
+        heard, check = guard.heard(decode(encode(bundle)), 4)
+        assert [(m.vid, m.tick) for m in heard] == [(1, 4), (2, 4)]
+        assert guard.payloads(received, check, bundle) == [payloads[10], payloads[20]]
+    assert shared.rejections.summary() == alone.rejections.summary()
+    with verdicts.table(4, bundle.messages) as table:
+        assert table.places() == [0, 3]
 
 
 # ---------------------------------------------------------------------------- the medium reads, never checks

@@ -57,7 +57,8 @@ class Guard:
         came in (``wrong_key``) and its interval, once per sender (``replayed``). It is
         read as far as every vehicle needs it (``HeardControl``, as without signing);
         ``decide`` opens its group's. Any other frame is opened here in full, and listed
-        if it passes."""
+        if it passes; one another vehicle is opening (``VerdictTable.claimed``) waits,
+        with the frames after it in its sender's slot, until the others are done."""
         check = PayloadCheck(tick, self.rejections, DATA_STREAM)
         receivers = bundle.receivers.tolist() if bundle is not None else []
         if self.vid not in receivers:
@@ -67,46 +68,73 @@ class Guard:
         table = None
         if self.verdicts is not None:  # the receivers sweep the old tables in turns
             table = self.verdicts.table(tick, messages, sweep=receivers[tick % len(receivers)] == self.vid)
-        rotated = table is not None and len(table) < len(places)
-        if rotated:  # each vehicle starts where the others do not; a sender's frames stay in order
-            places.sort(key=lambda at: (senders[at] < self.vid, at))
         heard: list[tuple[int, ControlMsg | HeardControl]] = []
         seen: set[int] = set()  # not check.vouched: a message whose digests do not fit its map vouches for nothing
-        for at in places:
-            sender, raw = senders[at], messages[at]
-            span = table.get(at) if table is not None else None
-            found = None
-            if span is None and table is not None:  # verified since we read the table?
-                found = body_span(raw)
-                if found is not None and table.has(at, *found):
-                    span = found
-            try:
-                if span is not None:
-                    msg = HeardControl.read(raw[span[0]:span[0] + span[1]])
-                    if msg.vid != sender:  # = its certificate's vehicle
-                        self.rejections.add(CTRL_STREAM, "wrong_key",
-                                            f"vehicle {msg.vid}'s certificate on vehicle {sender}'s")
-                        continue
-                    if msg.tick != tick or sender in seen:
-                        self.rejections.add(CTRL_STREAM, "replayed", f"vehicle {sender}, tick {msg.tick}")
-                        continue
-                else:
-                    msg = self.verifier.open(raw, ControlMsg, sender, CTRL_STREAM,
-                                             fresh=lambda m: m.tick == tick and m.vid not in seen)
-                    if msg is None:
-                        continue
-                    if found is not None and fits(msg):  # read in part, it must vouch as it would whole
-                        table.put(at, *found)
-            except MalformedMessage as err:
-                self.drops.add(CTRL_STREAM, err)
-                continue
-            heard.append((at, msg))
-            seen.add(sender)
-        if rotated:
+        try:
+            rotated = table is not None and len(table) < len(places)
+            if rotated:  # each vehicle starts where the others do not; a sender's frames stay in order
+                places.sort(key=lambda at: (senders[at] < self.vid, at))
+            later: list[int] = []  # frames another vehicle is opening, and those after them in their slot
+            waiting: set[int] = set()  # their senders
+            for at in places:
+                sender = senders[at]
+                if sender in waiting:
+                    later.append(at)
+                    continue
+                span = table.get(at) if table is not None else None
+                found = None
+                if span is None and table is not None:  # verified since we read the table?
+                    found = body_span(messages[at])
+                    if found is not None:
+                        if table.has(at, *found):
+                            span = found
+                        elif table.claimed(at):
+                            later.append(at)
+                            waiting.add(sender)
+                            continue
+                        else:
+                            table.claim(at)
+                self._hear(at, sender, messages[at], span, found, table, tick, heard, seen)
+            for at in later:  # listed by now, or opened here
+                found = body_span(messages[at])
+                span = found if found is not None and table.has(at, *found) else None
+                self._hear(at, senders[at], messages[at], span, found, table, tick, heard, seen)
+        finally:
+            if table is not None:
+                table.close()
+        if rotated or later:
             heard.sort(key=lambda h: h[0])
         msgs = [msg for _, msg in heard]
         check.vouch_all(msgs)
         return msgs, check
+
+    def _hear(self, at: int, sender: int, raw: bytes, span: tuple[int, int] | None, found: tuple[int, int] | None,
+              table, tick: int, heard: list, seen: set[int]) -> None:
+        """Frame ``at`` of ``sender``'s slot into ``heard`` (and its sender into ``seen``)
+        if it passes: the receiver's own checks of a listed frame (its body at ``span``),
+        else every check (and listed, its body at ``found``, if it passes); else counted."""
+        try:
+            if span is not None:
+                msg = HeardControl.read(raw[span[0]:span[0] + span[1]])
+                if msg.vid != sender:  # = its certificate's vehicle
+                    self.rejections.add(CTRL_STREAM, "wrong_key",
+                                        f"vehicle {msg.vid}'s certificate on vehicle {sender}'s")
+                    return
+                if msg.tick != tick or sender in seen:
+                    self.rejections.add(CTRL_STREAM, "replayed", f"vehicle {sender}, tick {msg.tick}")
+                    return
+            else:
+                msg = self.verifier.open(raw, ControlMsg, sender, CTRL_STREAM,
+                                         fresh=lambda m: m.tick == tick and m.vid not in seen)
+                if msg is None:
+                    return
+                if found is not None and fits(msg):  # read in part, it must vouch as it would whole
+                    table.put(at, *found)
+        except MalformedMessage as err:
+            self.drops.add(CTRL_STREAM, err)
+            return
+        heard.append((at, msg))
+        seen.add(sender)
 
     def payloads(self, received: list[Reception], check: PayloadCheck, bundle: CtrlBundle | None) -> list[bytes]:
         """The payloads of ``received`` their senders signed for this interval, in order."""

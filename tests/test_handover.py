@@ -47,6 +47,10 @@ def test_an_events_figures_from_a_hand_made_series():
 
 
 def hand_made_run(path) -> None:
+    write(path, hand_made_messages(), {"run_id": RUN, "vehicles": "2", "scheme": "autocast"})
+
+
+def hand_made_messages() -> list[tuple[str, object]]:
     """Two domains overlapping between x = -6.8 and 6.8 (centres -30 and 30, radius 35, the
     1.8 m guard band); the ego drives east 2 m a tick from x = -30, so it joins domain 1 at
     tick 12 (x = -6) and leaves domain 0 at tick 19 (x = 8). The collider (vid 2) stands at
@@ -65,7 +69,7 @@ def hand_made_run(path) -> None:
             msgs.append((keys.report(RUN, 0), AgentReport(k, k * 0.1, 0, xy, 0, False)))
     msgs.append((keys.world_outcome(RUN), Outcome(25, 2.5, {"scenario": "hand", "vehicles": 2, "t_end_s": 2.5,
                                                             "outcome": "safe"})))
-    write(path, msgs, {"run_id": RUN, "vehicles": "2", "scheme": "autocast"})
+    return msgs
 
 
 def test_a_runs_figures_from_its_log(tmp_path):

@@ -251,3 +251,34 @@ def test_a_one_domain_sweep_has_no_network_tables_and_reads_nothing_for_them(swe
     md = (sweep / "report" / "summary.md").read_text()
     assert "## Per domain" not in md and "## Handover cost" not in md
     assert not (sweep / "report" / "network").exists()
+
+
+@pytest.mark.heavy
+def test_a_short_real_sweep_of_grid4_handover_through_domain_stats_into_the_report(tmp_path):
+    """``autocast sweep`` of grid4_handover at 10 vehicles for 3 s, Single and AutoCast,
+    then the report: a row per domain for AutoCast (Single has no channel), a handover row
+    per scheme, and the handover figures' whole window gives the judge's own visibility."""
+    import subprocess
+    import sys
+
+    (tmp_path / "spec.toml").write_text(
+        'scenarios = ["grid4_handover"]\ncollider_speeds_kmh = [30]\ndeltas_s = [0]\nvehicles = [10]\n'
+        'schemes = ["single", "autocast"]\nseeds = [0]\nduration_s = 3\n')
+    sweep = tmp_path / "sweep"
+    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "sweep", "--file", str(tmp_path / "spec.toml"),
+                           "--out", str(sweep)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert report.main([str(sweep)]) == 0
+    md = (sweep / "report" / "summary.md").read_text().split("## Per domain")[1]
+    for d, ch in ((0, 0), (1, 1), (2, 1), (3, 0)):
+        assert f"| grid4_handover | autocast | 10 | {d} | {ch} | 1 |" in md
+    assert "| grid4_handover | single | 10 |" not in md.split("## Handover cost")[0]
+    for scheme in ("single", "autocast"):
+        assert f"| grid4_handover | grid4_handover | {scheme} | 10 | 1 |" in md
+    for r in map(json.loads, (sweep / "results.jsonl").read_text().splitlines()):
+        net = json.loads((sweep / "report" / "network" / f"{r['run_id']}.json").read_text())["summary"]
+        window = net["handover"][0]["window"]
+        assert window["ticks"] == r["ticks"] == 30
+        assert round(window["visible"] / window["ticks"], 4) == r["collider_visible_share"]
+        assert round(window["points"] / window["ticks"], 2) == r["collider_points_mean"]
+        assert (net["domains"] is None) == (r["scheme"] == "single")

@@ -588,7 +588,7 @@ def handover_table_md(cells: dict[tuple[str, str, str, str, int], HandoverCell])
                      seen(c.away), "-" if c.cost is None else f"{100 * c.cost:+.0f}"])
     return _md([*(["model"] if several else []), "scenario", "event", "scheme", "vehicles", "runs",
                 "runs whose ego crossed", "crossings", "visible around a crossing (ticks), mean points",
-                "visible away from any (ticks), mean points", "cost (points of %)"], rows)
+                "visible away from any (ticks), mean points", "cost (away - around, % points)"], rows)
 
 
 # ---------------------------------------------------------------------------- plots

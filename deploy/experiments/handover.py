@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     for e in costs:
         w, a, b = e["window"], e["around"], e["away"]
         print(f"{e['event']} (ego {e['ego']}, collider {e['collider']}): window {w['ticks']} ticks, collider visible "
-              f"in {_pct(share(w))}; {len(e['crossings'])} crossings in it"
+              f"in {_pct(share(w))}; {len(e['crossings'])} crossing{'' if len(e['crossings']) == 1 else 's'} in it"
               + (f" ({e['crossings_outside']} after it)" if e["crossings_outside"] else ""))
         for c in e["crossings"]:
             print(f"  tick {c['tick']}: joined {c['joined'] or '-'}, left {c['left'] or '-'}: visible in "

@@ -361,27 +361,35 @@ def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
     return cached(mcap, cache, LOAD_CACHE_VERSION, lambda m: load.load_summary(load.interval_load(m)))
 
 
-def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]], cache_dir: Path
-                 ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
-    """(record, load summary) of every judged run with a channel whose MCAP is here, and
-    the records of those whose MCAP is not (or could not be read)."""
+def _per_run(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]],
+             wanted: Callable[[dict[str, Any]], bool], read: Callable[[Path, str], dict[str, Any]], what: str
+             ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, ``read(mcap, run id)``) of every judged run ``wanted`` whose MCAP is here,
+    and the records of those whose MCAP is not or could not be read (a truncated or
+    foreign log: ``what`` is logged as not read and the report goes on without it)."""
     got, missing = [], []
     for r in judged(records):
-        if r["scheme"] in NO_CHANNEL:
+        if not wanted(r):
             continue
         mcap = mcap_of(sweep_dir, plan, r)
         if mcap is None:
             missing.append(r)
             continue
         try:
-            summary = run_load(mcap, cache_dir / f"{r['run_id']}.json")
-        except Exception as exc:  # a truncated or foreign log: the report goes on without it
-            log.warning("%s: offered load not read: %s", mcap, exc)
+            got.append((r, read(mcap, r["run_id"])))
+        except Exception as exc:
+            log.warning("%s: %s not read: %s", mcap, what, exc)
             missing.append(r)
-            continue
-        if summary["intervals"]:
-            got.append((r, summary))
     return got, missing
+
+
+def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]], cache_dir: Path
+                 ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, load summary) of every judged run with a channel whose MCAP is here, and
+    the records of those whose MCAP is not (or could not be read)."""
+    got, missing = _per_run(sweep_dir, plan, records, lambda r: r["scheme"] not in NO_CHANNEL,
+                            lambda mcap, run_id: run_load(mcap, cache_dir / f"{run_id}.json"), "offered load")
+    return [(r, summary) for r, summary in got if summary["intervals"]], missing
 
 
 @dataclass(frozen=True, slots=True)
@@ -475,20 +483,8 @@ def network_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Seque
                     cache_dir: Path) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
     """(record, ``run_network``) of every judged run of a scenario of several domains whose
     MCAP is here, and the records of those whose MCAP is not (or could not be read)."""
-    got, missing = [], []
-    for r in judged(records):
-        if not several_domains(r["scenario"]):
-            continue
-        mcap = mcap_of(sweep_dir, plan, r)
-        if mcap is None:
-            missing.append(r)
-            continue
-        try:
-            got.append((r, run_network(mcap, cache_dir / f"{r['run_id']}.json")))
-        except Exception as exc:  # a truncated or foreign log: the report goes on without it
-            log.warning("%s: per-domain figures not read: %s", mcap, exc)
-            missing.append(r)
-    return got, missing
+    return _per_run(sweep_dir, plan, records, lambda r: several_domains(r["scenario"]),
+                    lambda mcap, run_id: run_network(mcap, cache_dir / f"{run_id}.json"), "per-domain figures")
 
 
 @dataclass(frozen=True, slots=True)

@@ -43,6 +43,11 @@ class ChannelProfile:
         return int(self.bandwidth_bps * self.frame_duration_s / 8.0)
 
     @property
+    def data_capacity_bytes(self) -> int:
+        """What the data channel carries in one decision interval: B x N x T_n / 8."""
+        return int(round(self.bandwidth_bps * self.n_frames * self.frame_duration_s / 8.0))
+
+    @property
     def ctrl_capacity_bytes(self) -> int:
         return int(self.ctrl_bandwidth_bps * self.ctrl_window_s / 8.0)
 

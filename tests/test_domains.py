@@ -156,3 +156,25 @@ def test_domain_stats_count_members_handovers_and_collisions():
     assert s.intervals == 3 and s.members["0"] == [2, 2, 1] and s.members["1"] == [1, 2, 2]
     assert s.joins == {"1": 1} and s.leaves == {"0": 1} and s.in_two == 1  # vehicle 2 handed over from 0 to 1
     assert s.transmissions == {"0": 12, "1": 12} and s.collided == {"0": 1, "1": 1}
+
+
+def test_domain_stats_count_an_empty_interval_as_zero_and_the_load_on_the_air():
+    from channel_proxy.domain_stats import run_summary, summarise, table
+
+    def dom(members, offered_bytes):
+        return {"channel": 0, "members": members, "data": {"transmissions": 1, "offered_bytes": offered_bytes}}
+
+    # domain 1 has no member in the first and the third interval: the proxy's stats leave it out
+    s = summarise([{"domains": {"0": dom([1, 2], 45_000)}},
+                   {"domains": {"0": dom([1, 2], 9_000), "1": dom([2], 90_000)}},
+                   {"domains": {"0": dom([1, 2], 0)}}])
+    assert s.members == {"0": [2, 2, 2], "1": [0, 1, 0]}
+    assert s.offered_bytes == {"0": [45_000, 9_000, 0], "1": [0, 90_000, 0]}
+    assert s.joins == {"1": 1} and s.leaves == {"1": 1}  # vehicle 2 went into domain 1 and back out
+    summary = run_summary(s, 90_000)
+    assert summary["domains"]["1"] == {"channel": 0, "members": [0, 1, 0], "offered_bytes": [0, 90_000, 0],
+                                       "joined": 1, "left": 1, "transmissions": 1, "collided": 0,
+                                       "delivered_bytes": 0}
+    # load per interval: 45000 / 90000 = 0.5, 0.1, 0: median 0.10, max 0.50; domain 1: 0, 1, 0
+    assert "| 0 | 0 | 2.0 (2-2) | 0 | 0 | 0.10 (0.50) |" in table(s, 90_000)
+    assert "| 1 | 0 | 0.3 (0-1) | 1 | 1 | 0.00 (1.00) |" in table(s, 90_000)

@@ -1,5 +1,5 @@
 """The 2 x 2 grid (docs/domains.md, "The grid"): its junctions, domains and channels, the
-roads through it, and the scenario on it, built and run."""
+roads through it, and the scenarios on it (grid4, grid4_handover), built and run."""
 
 from __future__ import annotations
 
@@ -122,6 +122,30 @@ def test_grid4_background_drives_through_to_the_maps_edge():
     assert moving
     for a in moving:  # through_route ends on an edge arm, whatever segment the vehicle starts on
         assert np.abs(a.route[-1]).max() == pytest.approx(EDGE_M)
+
+
+def test_grid4_handover_starts_the_ego_in_the_overlap_so_it_hands_over_on_its_way():
+    from deploy.experiments.handover import Crossing, crossings
+
+    s = build(ScenarioParams(scenario="grid4_handover", vehicles=20))
+    # 9.5 s at 30 km/h = 79.2 m of approach: the turn's 9.75 acos(2.75 / 9.75) = 12.5 m and 66.7 m of
+    # J0:E.in.0 (x from 0 to -67)
+    x0, y0, yaw0 = s.ego.start_pose()
+    arc = 9.75 * math.acos(2.75 / 9.75)
+    assert (x0, y0, yaw0) == pytest.approx((9.5 * 30 / 3.6 - arc - 67.0, -73.25, math.pi), abs=0.01)  # a polyline arc
+    assert s.arrival_s(s.ego) == pytest.approx(9.5) and s.arrival_s(s.collider) == pytest.approx(9.5)
+    assert s.conflict_xy == pytest.approx(build(ScenarioParams(scenario="grid4", vehicles=20)).conflict_xy)
+    assert sum(a.role == "traffic" for a in s.actors) == 1  # the collider starts 79 m out: room for one more
+    # J1's reach (85 + 1.8 m) ends at x = 75 - sqrt(86.8^2 - 1.75^2) = -11.78, J0's at 11.78: the ego starts
+    # in both and, at 30 km/h from x0 = -0.36, leaves J1 at tick 14 (x = -12.0)
+    table = DomainTable.of(s.roadmap.to_msg())
+    assert table.membership(x0, y0) == (0, 1)
+    ticks = range(96)
+    xy = point_at(s.ego.route, s.ego.speed_mps * 0.1 * np.array(ticks))[0]
+    assert crossings(ticks, [table.membership(*p) for p in xy]) == [Crossing(14, (), (1,))]
+    build(ScenarioParams(scenario="grid4_handover", vehicles=5, collider_speed_kmh=50.0))
+    with pytest.raises(ScenarioError, match="collider_speed_kmh: needs 145 m of approach, the map has 137 m"):
+        build(ScenarioParams(scenario="grid4_handover", vehicles=5, collider_speed_kmh=55.0))
 
 
 RUN_TICKS = 30  # 3 s of sim time at T_d = 0.1 s

@@ -55,9 +55,10 @@ from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, co
     straight_road
 
 SCENARIOS = ("overtaking", "left_turn", "red_light")  # the paper's, registered below
-NETWORK_SCENARIOS = ("corridor3", "grid4", "corridor3x")  # several domains (docs/domains.md), registered below
+NETWORK_SCENARIOS = ("corridor3", "grid4", "corridor3x", "grid4_handover")  # several domains (docs/domains.md)
 EGO_LEAD_TIME_S = 7.0  # the ego reaches the conflict point this long after t = 0
 OVERTAKE_LEAD_TIME_S = 5.0  # starts closer behind the truck, as a driver about to pull out
+GRID4_HANDOVER_LEAD_S = 9.5  # grid4_handover: the ego starts in the J0-J1 overlap and leaves it
 LEFT_TURNER_INTO_BOX_M = 3.5  # the waiting left-turn truck's centre, past its stop line on its lane's line
 LEFT_TURNER_YAW_DEG = 30.0  # ... yawed this much toward its turn (the authors: 5 m in, 30 deg; 5 m would
 # touch the ego's turn in our 16 m box, 3.5 m clears it by 0.7 m)
@@ -422,17 +423,19 @@ def followers(p: ScenarioParams, collider: Actor, full_route: np.ndarray, gap_m:
     return out
 
 
-def left_turn_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
+def left_turn_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "",
+                    lead_s: float = EGO_LEAD_TIME_S) -> tuple[list[Actor], np.ndarray]:
     """The left-turn event at a junction (lane ids ``prefix`` + ...): the ego turns left
     from ``ego_arm``, the opposite left-turning truck, waiting inside the junction, hides
     the collider coming straight from the opposite arm and the cars that follow it; they
     drive on straight ahead (``through_route``: on a grid, through the next junction).
-    Returns the actors and the conflict point."""
+    The ego reaches the conflict point ``lead_s`` after t = 0, the collider ``--delta``
+    later. Returns the actors and the conflict point."""
     a, o = ego_arm, OPPOSITE[ego_arm]
     collider_route = m.through_route(f"{prefix}{o}.in.1")
     ego, collider, conflict = crossing_actors(
         p, m, m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{LEFT_OF[a]}", f"{prefix}{LEFT_OF[a]}.out.0"),
-        collider_route, LEFT_TURN_EGO_KMH)
+        collider_route, LEFT_TURN_EGO_KMH, lead_s=lead_s)
     truck = left_turner(m, f"{prefix}{o}.in.0",
                         m.route(f"{prefix}{o}.in.0", f"{prefix}{o}.in.0>{LEFT_OF[o]}", f"{prefix}{LEFT_OF[o]}.out.0"))
     traffic = followers(p, collider, collider_route, LEFT_TURN_TRAFFIC_GAP_M, p.vehicles + 1, 0.0)
@@ -570,6 +573,18 @@ def _grid4(p: ScenarioParams) -> Scenario:
     where its light is green, across the domains' borders."""
     m = grid(2, 2)
     actors, conflict = left_turn_event(p, m, "E", "J0:")
+    return Scenario(p, m, actors, conflict, _lights({0: "EW", 1: "EW", 2: "NS", 3: "NS"}))
+
+
+@register_scenario("grid4_handover", time_limit_s=30.0)
+def _grid4_handover(p: ScenarioParams) -> Scenario:
+    """``grid4`` with an approach of ``GRID4_HANDOVER_LEAD_S`` (9.5 s) instead of 7: the
+    ego starts at the eastern end of ``J0:E.in.0``, in the overlap of ``J0``'s and
+    ``J1``'s domains, and leaves ``J1``'s 11.4 m on, so it hands over during its event
+    (docs/domains.md, "What a handover costs"). The collider starts 9.5 s out too, and
+    one car follows it on the edge arm instead of two."""
+    m = grid(2, 2)
+    actors, conflict = left_turn_event(p, m, "E", "J0:", lead_s=GRID4_HANDOVER_LEAD_S)
     return Scenario(p, m, actors, conflict, _lights({0: "EW", 1: "EW", 2: "NS", 3: "NS"}))
 
 

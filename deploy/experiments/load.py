@@ -107,8 +107,7 @@ def capacity_bytes(profile_name: str) -> int:
     """Bytes the data channel carries in one decision interval: B x N x T_n / 8."""
     from channel_proxy.profiles import get_profile
 
-    p = get_profile(profile_name)
-    return int(round(p.bandwidth_bps * p.n_frames * p.frame_duration_s / 8.0))
+    return get_profile(profile_name).data_capacity_bytes
 
 
 def _control_objects(payload: bytes):

@@ -15,7 +15,11 @@ Writes into ``SWEEP_DIR/report/`` (``--out``):
   delivery to the ego beside its visibility, vs density (``deploy.experiments.load``; each run's
   figures cached in ``SWEEP_DIR/report/load/<run id>.json``)
 - ``summary.md``: the tables, with "safe passage % by scheme x density", and outcomes
-  per event for the runs of a scenario of several events (records with ``events``)
+  per event for the runs of a scenario of several events (records with ``events``); for
+  the runs of a scenario of several domains, a table per domain
+  (``channel_proxy.domain_stats``) and the handover cost per event
+  (``deploy.experiments.handover``), each run's figures cached in
+  ``SWEEP_DIR/report/network/<run id>.json``
 
 A plot without data says so instead of failing. Exit code 0, or 2 when the directory
 holds no sweep.
@@ -24,13 +28,14 @@ holds no sweep.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import statistics
 import sys
 import time
 from collections import Counter, defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +60,7 @@ FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "
 NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
 DEFAULT_MODEL = "ours"  # a record without a "model" field
 LOAD_CACHE_VERSION = 1  # bump when deploy.experiments.load's figures change meaning
+NETWORK_CACHE_VERSION = 1  # ... when domain_stats' run summary or the handover figures do
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
 
@@ -329,21 +335,18 @@ def model_of(record: dict[str, Any]) -> str:
     return record.get("model") or DEFAULT_MODEL
 
 
-def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
-    """``deploy.experiments.load.load_summary`` of a run's MCAP, from ``cache`` when it was computed
-    from the same file (path, size, mtime) by this version, else computed and cached."""
-    from deploy.experiments.load import interval_load, load_summary
-
+def cached(mcap: Path, cache: Path, version: int, compute: Callable[[Path], Any]) -> Any:
+    """``compute(mcap)``, from ``cache`` when it was computed from the same file (path,
+    size, mtime) by the same ``version``, else computed and cached."""
     st = mcap.stat()
-    stamp = {"version": LOAD_CACHE_VERSION, "mcap": str(mcap), "mcap_bytes": st.st_size,
-             "mcap_mtime_ns": st.st_mtime_ns}
+    stamp = {"version": version, "mcap": str(mcap), "mcap_bytes": st.st_size, "mcap_mtime_ns": st.st_mtime_ns}
     try:
-        cached = json.loads(cache.read_text())
-        if {k: cached.get(k) for k in stamp} == stamp:
-            return cached["summary"]
+        got = json.loads(cache.read_text())
+        if {k: got.get(k) for k in stamp} == stamp:
+            return got["summary"]
     except (OSError, ValueError, KeyError, AttributeError):
         pass
-    summary = load_summary(interval_load(mcap))
+    summary = compute(mcap)
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp")
     tmp.write_text(json.dumps({**stamp, "summary": summary}, allow_nan=False))
@@ -351,27 +354,42 @@ def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
     return summary
 
 
-def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]], cache_dir: Path
-                 ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
-    """(record, load summary) of every judged run with a channel whose MCAP is here, and
-    the records of those whose MCAP is not (or could not be read)."""
+def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
+    """``deploy.experiments.load.load_summary`` of a run's MCAP, cached (``cached``)."""
+    from deploy.experiments import load
+
+    return cached(mcap, cache, LOAD_CACHE_VERSION, lambda m: load.load_summary(load.interval_load(m)))
+
+
+def _per_run(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]],
+             wanted: Callable[[dict[str, Any]], bool], read: Callable[[Path, str], dict[str, Any]], what: str
+             ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, ``read(mcap, run id)``) of every judged run ``wanted`` whose MCAP is here,
+    and the records of those whose MCAP is not or could not be read (a truncated or
+    foreign log: ``what`` is logged as not read and the report goes on without it)."""
     got, missing = [], []
     for r in judged(records):
-        if r["scheme"] in NO_CHANNEL:
+        if not wanted(r):
             continue
         mcap = mcap_of(sweep_dir, plan, r)
         if mcap is None:
             missing.append(r)
             continue
         try:
-            summary = run_load(mcap, cache_dir / f"{r['run_id']}.json")
-        except Exception as exc:  # a truncated or foreign log: the report goes on without it
-            log.warning("%s: offered load not read: %s", mcap, exc)
+            got.append((r, read(mcap, r["run_id"])))
+        except Exception as exc:
+            log.warning("%s: %s not read: %s", mcap, what, exc)
             missing.append(r)
-            continue
-        if summary["intervals"]:
-            got.append((r, summary))
     return got, missing
+
+
+def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]], cache_dir: Path
+                 ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, load summary) of every judged run with a channel whose MCAP is here, and
+    the records of those whose MCAP is not (or could not be read)."""
+    got, missing = _per_run(sweep_dir, plan, records, lambda r: r["scheme"] not in NO_CHANNEL,
+                            lambda mcap, run_id: run_load(mcap, cache_dir / f"{run_id}.json"), "offered load")
+    return [(r, summary) for r, summary in got if summary["intervals"]], missing
 
 
 @dataclass(frozen=True, slots=True)
@@ -430,6 +448,143 @@ def load_table_md(cells: dict[tuple[str, str, int], LoadCell]) -> list[str]:
     return _md([*(["model"] if several else []), "scheme", "vehicles", "runs", "offered load / capacity (median)",
                 "intervals over capacity", "share sent (median)", "collider delivery (intervals offered)",
                 "collider delivery (all intervals)", "collider visibility"], rows)
+
+
+# ---------------------------------------------------------------------------- several domains
+
+
+@functools.cache
+def several_domains(scenario: str) -> bool:
+    """Whether the scenario's map declares several scheduler domains (docs/domains.md)."""
+    from world_server.scenarios import ScenarioParams, builder_of
+
+    try:
+        return len(builder_of(scenario)(ScenarioParams(scenario=scenario)).roadmap.domains) > 1
+    except Exception as exc:  # a name this build does not know, a plugin that wants other parameters
+        log.info("scenario %s: not built (%s); counted as one domain", scenario, exc)
+        return False
+
+
+def run_network(mcap: Path, cache: Path) -> dict[str, Any]:
+    """A network run's per-domain summary (``channel_proxy.domain_stats.read_summary``; None
+    without a V2V channel) and its events' handover figures
+    (``deploy.experiments.handover.run_costs``), cached (``cached``)."""
+    from channel_proxy import domain_stats
+    from deploy.experiments import handover
+
+    def compute(m: Path) -> dict[str, Any]:
+        domains = domain_stats.read_summary(m)
+        return {"domains": domains if domains["intervals"] else None, "handover": handover.run_costs(m)}
+
+    return cached(mcap, cache, NETWORK_CACHE_VERSION, compute)
+
+
+def network_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]],
+                    cache_dir: Path) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, ``run_network``) of every judged run of a scenario of several domains whose
+    MCAP is here, and the records of those whose MCAP is not (or could not be read)."""
+    return _per_run(sweep_dir, plan, records, lambda r: several_domains(r["scenario"]),
+                    lambda mcap, run_id: run_network(mcap, cache_dir / f"{run_id}.json"), "per-domain figures")
+
+
+@dataclass(frozen=True, slots=True)
+class DomainCell:
+    runs: int
+    channel: int
+    intervals: int  # pooled over the runs
+    members_median: float  # members per interval, pooled over the runs' intervals
+    members_max: int
+    joined_per_run: float  # vehicles that joined the domain, mean over the runs
+    left_per_run: float
+    load_median: float  # bytes on the air per interval over the capacity, pooled over the intervals
+    load_max: float
+    transmissions: int
+    collided: int
+
+
+def domain_cells(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]
+                 ) -> dict[tuple[str, str, str, int, int], DomainCell]:
+    """(model, scenario, scheme, vehicles, domain) -> its figures over the runs with a V2V
+    channel (a run without one, Single's or EMP's, has no domains)."""
+    groups: dict[tuple[str, str, str, int, int], list[tuple[dict[str, Any], int]]] = defaultdict(list)
+    for r, net in pairs:
+        summary = net.get("domains") or {}
+        for d, ds in (summary.get("domains") or {}).items():
+            key = (model_of(r), r["scenario"], r["scheme"], r["vehicles"], int(d))
+            groups[key].append((ds, summary["capacity_bytes"]))
+    out = {}
+    for k, g in groups.items():
+        members = np.concatenate([np.asarray(ds["members"], dtype=np.int64) for ds, _ in g])
+        load = np.concatenate([np.asarray(ds["offered_bytes"], dtype=np.float64) / cap for ds, cap in g])
+        out[k] = DomainCell(len(g), g[0][0]["channel"], len(members), float(np.median(members)), int(members.max()),
+                            statistics.fmean(ds["joined"] for ds, _ in g),
+                            statistics.fmean(ds["left"] for ds, _ in g), float(np.median(load)), float(load.max()),
+                            sum(ds["transmissions"] for ds, _ in g), sum(ds["collided"] for ds, _ in g))
+    return out
+
+
+def domain_table_md(cells: dict[tuple[str, str, str, int, int], DomainCell]) -> list[str]:
+    """Rows by scenario, scheme, density, domain; a model column only when there are several."""
+    several = len({k[0] for k in cells}) > 1
+    rows = []
+    for (m, sc, s, n, d), c in sorted(cells.items(), key=lambda kv: (kv[0][0], kv[0][1], _order(kv[0][2]),
+                                                                     *kv[0][3:])):
+        rows.append([*([m] if several else []), sc, s, n, d, c.channel, c.runs,
+                     f"{c.members_median:g} ({c.members_max})", f"{c.joined_per_run:.1f}", f"{c.left_per_run:.1f}",
+                     f"{c.load_median:.2f} ({c.load_max:.2f})",
+                     _pct(c.collided, c.transmissions)])
+    return _md([*(["model"] if several else []), "scenario", "scheme", "vehicles", "domain", "channel", "runs",
+                "members per interval, median (max)", "joined per run", "left per run",
+                "load per interval, median (max)", "collided (of transmissions)"], rows)
+
+
+@dataclass(frozen=True, slots=True)
+class HandoverCell:
+    runs: int
+    crossed: int  # runs whose event ego crossed a border during its event
+    crossings: int
+    around: dict[str, int]  # ticks, visible, points: pooled over the runs
+    away: dict[str, int]
+
+    @property
+    def cost(self) -> float | None:
+        """Visible share away minus around (positive: seen less around the crossings)."""
+        from deploy.experiments.handover import share
+
+        a, b = share(self.around), share(self.away)
+        return None if a is None or b is None else b - a
+
+
+def handover_cells(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]
+                   ) -> dict[tuple[str, str, str, str, int], HandoverCell]:
+    """(model, scenario, event, scheme, vehicles) -> the collider's visibility around the
+    event ego's border crossings and away from them, pooled over the runs' ticks."""
+    groups: dict[tuple[str, str, str, str, int], list[dict[str, Any]]] = defaultdict(list)
+    for r, net in pairs:
+        for e in net.get("handover") or ():
+            groups[(model_of(r), r["scenario"], e["event"], r["scheme"], r["vehicles"])].append(e)
+
+    def pool(g: list[dict[str, Any]], part: str) -> dict[str, int]:
+        return {f: sum(e[part][f] for e in g) for f in ("ticks", "visible", "points")}
+
+    return {k: HandoverCell(len(g), sum(bool(e["crossings"]) for e in g), sum(len(e["crossings"]) for e in g),
+                            pool(g, "around"), pool(g, "away")) for k, g in groups.items()}
+
+
+def handover_table_md(cells: dict[tuple[str, str, str, str, int], HandoverCell]) -> list[str]:
+    several = len({k[0] for k in cells}) > 1
+
+    def seen(t: dict[str, int]) -> str:
+        return f"{_pct(t['visible'], t['ticks'])}, {t['points'] / t['ticks']:.0f} pts" if t["ticks"] else "-"
+
+    rows = []
+    for (m, sc, ev, s, n), c in sorted(cells.items(), key=lambda kv: (kv[0][0], kv[0][1], kv[0][2],
+                                                                      _order(kv[0][3]), kv[0][4])):
+        rows.append([*([m] if several else []), sc, ev, s, n, c.runs, c.crossed, c.crossings, seen(c.around),
+                     seen(c.away), "-" if c.cost is None else f"{100 * c.cost:+.0f}"])
+    return _md([*(["model"] if several else []), "scenario", "event", "scheme", "vehicles", "runs",
+                "runs whose ego crossed", "crossings", "visible around a crossing (ticks), mean points",
+                "visible away from any (ticks), mean points", "cost (away - around, % points)"], rows)
 
 
 # ---------------------------------------------------------------------------- plots
@@ -761,7 +916,9 @@ def coverage(records: Sequence[dict[str, Any]], plan: dict[str, Any] | None) -> 
 
 def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[str, Any] | None,
                delay: dict[str, DelayRow], delay_vehicles: int | None, delay_note: str,
-               load: dict[tuple[str, str, int], LoadCell] | None = None, load_note: str = "") -> str:
+               load: dict[tuple[str, str, int], LoadCell] | None = None, load_note: str = "",
+               network: Sequence[tuple[dict[str, Any], dict[str, Any]]] | None = None,
+               network_note: str = "") -> str:
     name = (plan or {}).get("spec", {}).get("name", sweep_dir.name)
     lines = [f"# Sweep report: {name}", "",
              f"`{sweep_dir}`: {coverage(records, plan)} Report written {time.strftime('%Y-%m-%d %H:%M')}.", "",
@@ -828,6 +985,8 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
         lines += load_table_md(load)
     if load_note:
         lines += ["", load_note]
+    if network is not None:
+        lines += network_md(network, network_note)
     failed = [r for r in records if r.get("status") != "judged"]
     if failed:
         lines += ["", "## Failed runs", ""]
@@ -840,6 +999,33 @@ def summary_md(sweep_dir: Path, records: Sequence[dict[str, Any]], plan: dict[st
                   "An agent the world declared dead drove with the failsafe brake from then on.", ""]
         lines += _md(["run", "dead agents"], [[r["run_id"], json.dumps(r["dead_agents"])] for r in dead])
     return "\n".join(lines) + "\n"
+
+
+def network_md(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]], note: str) -> list[str]:
+    """The sections of a sweep with runs of several domains: per domain, and the handover cost."""
+    lines = ["", "## Per domain: members, handovers, load, collisions", "",
+             "Runs of a scenario of several domains (docs/domains.md), from each judged run's MCAP "
+             "(`python -m channel_proxy.domain_stats RUN_DIR`): a domain's members per interval (the vehicles "
+             "that sent their control message in it; an interval without any counts 0), median and max over "
+             "every interval of the runs; the vehicles that joined and left it, mean per run; its load, the "
+             "bytes its members put on the air in an interval over the data channel's capacity (B N T_n / 8), "
+             "median and max over the intervals (domains on one channel share it: the channel's load is their "
+             "sum); and its transmissions lost to a collision at some receiver. Single and EMP have no "
+             "domains on the air: no rows.", ""]
+    cells = domain_cells(pairs)
+    lines += domain_table_md(cells) if cells else [
+        "No data: no judged V2V run of several domains has its MCAP here."]
+    lines += ["", "## Handover cost: the collider's visibility around the ego's border crossings", "",
+              "Per event (`python -m deploy.experiments.handover RUN.mcap`): the ticks of the event's window (up to "
+              "its judgement) in the second around each border crossing of its ego (ticks k - 5 .. k + 4 of a "
+              "crossing at tick k: its domains differ from tick k - 1's) and those at least one second from every "
+              "crossing; in each, the share of ticks with the collider in the ego's fused view (at least 5 of its "
+              "points, as the judge counts them) and its mean points, pooled over the runs' ticks. Cost: the share "
+              "away minus the share around. Single's fused view is its own LiDAR: its row is what the crossing's "
+              "place and moment give without any radio.", ""]
+    cells = handover_cells(pairs)
+    lines += handover_table_md(cells) if cells else ["No data: no judged run of several domains has its MCAP here."]
+    return lines + (["", note] if note else [])
 
 
 def _order(scheme: str) -> int:
@@ -919,8 +1105,18 @@ def main(argv: list[str] | None = None) -> int:
     log.info("offered load of %s in %.1f s", _n(len(pairs), "run"), time.perf_counter() - t0)
     plot_load(load, out / "load_vs_density.png", "no judged run with a channel and its MCAP")
 
+    network, network_note = None, ""
+    if any(several_domains(r["scenario"]) for r in judged(records)):
+        t0 = time.perf_counter()
+        network, no_mcap = network_of_runs(args.sweep_dir, plan, records, args.sweep_dir / "report" / "network")
+        if no_mcap:
+            network_note = (f"{_n(len(no_mcap), 'judged run')} of several domains left out, MCAP missing or "
+                            f"unreadable: {_ids([r['run_id'] for r in no_mcap])}.")
+        log.info("per-domain figures of %s in %.1f s", _n(len(network), "run"), time.perf_counter() - t0)
+
     (out / "summary.md").write_text(summary_md(args.sweep_dir, records, plan, delay_table(by_scheme),
-                                               vehicles if by_scheme else None, note, load, load_note.strip()))
+                                               vehicles if by_scheme else None, note, load, load_note.strip(),
+                                               network, network_note))
     log.info("%d runs -> %s: %s, summary.md", len(records), out, ", ".join(FIGURES))
     return 0
 

@@ -106,7 +106,7 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     sc = ap.add_argument_group("scenario (python -m world_server --help)")
     sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn); "
-                    "corridor3 | grid4 | corridor3x: several junctions (docs/domains.md)")
+                    "corridor3 | grid4 | corridor3x | grid4_handover: several junctions (docs/domains.md)")
     sc.add_argument("--vehicles", default="10", help="connected vehicles in range, ego included (default 10)")
     sc.add_argument("--collider-speed", default="30", metavar="KMH", help="the collider's speed (default 30)")
     sc.add_argument("--delta", default="0", metavar="SECONDS",

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -33,15 +35,27 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     controller, before its workers exist). On a fresh clone every kernel compiles
     otherwise inside whichever test first starts a run, with the other workers compiling
     the same kernels at the same time: on CI that took 86 s, and the run's 90 s safety net
-    went off. Warm, a launcher loads them in under a second."""
+    went off. Warm, a launcher loads them in under a second.
+
+    From an empty cache (a fresh clone, CI) the warm-up's own output is kept apart for
+    ``tests/test_warmup.py``, which checks that runs compile nothing it left out: its
+    files alone, before any test adds to the cache (``AUTOCAST_WARMED_CACHE``)."""
     if hasattr(session.config, "workerinput"):
         return
+    from deploy.launch.warmup import cached_kernels, missing_kernels
+
+    cold = len(missing_kernels()) == len(cached_kernels())
     t0 = time.monotonic()
     try:  # the timeout only a safety net: a cold warm-up takes 20 s here, 86 s on CI
         done = subprocess.run(WARM_ARGV, capture_output=True, text=True, timeout=900)
         failure = f"exit {done.returncode}:\n{done.stderr[-2000:]}" if done.returncode != 0 else ""
     except subprocess.TimeoutExpired:
         failure = "no end in 900 s"
+    if cold and not failure:
+        kept = Path(tempfile.mkdtemp(prefix="autocast-warmed-"))
+        _copy_as_cache_dir(cached_kernels(), kept)
+        (kept / "warm-up.log").write_text(done.stderr)
+        os.environ["AUTOCAST_WARMED_CACHE"] = str(kept)  # the workers inherit it
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
     if reporter is None:
         return
@@ -49,6 +63,27 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         reporter.write_line(f"numba caches not warmed ({failure})", red=True)
     elif time.monotonic() - t0 > 5:
         reporter.write_line(f"numba caches compiled in {time.monotonic() - t0:.0f} s")
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    kept = os.environ.get("AUTOCAST_WARMED_CACHE")
+    if kept and not hasattr(session.config, "workerinput"):
+        shutil.rmtree(kept, ignore_errors=True)
+
+
+def _copy_as_cache_dir(kernels: list, dest: Path) -> None:
+    """The kernels' cache files (index and compiled signatures) as they would lie under
+    ``NUMBA_CACHE_DIR=dest``: the same file names, in numba's directory for each source
+    file instead of the source's ``__pycache__``."""
+    from numba.core.caching import UserProvidedCacheLocator
+
+    for kernel in kernels:
+        index = Path(kernel._cache._cache_file._index_path)
+        stem = index.name.removesuffix(".nbi")
+        into = dest / UserProvidedCacheLocator.get_suitable_cache_subpath(kernel.py_func.__code__.co_filename)
+        into.mkdir(parents=True, exist_ok=True)
+        for f in [index, *index.parent.glob(f"{stem}.*.nbc")]:
+            shutil.copy2(f, into / f.name)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

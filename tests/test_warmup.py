@@ -4,8 +4,10 @@ real interval gives them, so the first tick compiles and loads nothing."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,21 +91,33 @@ def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
     """From an empty numba cache (a fresh clone, CI): ``warm_numba_caches``, what the
     launcher and the suite run first, compiles every kernel that runs of every scenario
     and sharing scheme then load. A kernel it misses compiles inside a tick instead, in
-    every agent at once; on CI one such compile outlasted a test's safety net."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    warm = subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, text=True, timeout=900)
-    said = warm.stderr.splitlines()  # what a first run shows while it compiles: how many, and when it is done
-    assert any(line.startswith("compiling ") and "numba kernels on" in line for line in said), warm.stderr[-2000:]
+    every agent at once; on CI one such compile outlasted a test's safety net.
+
+    The suite's own first step is that warm-up when it starts from an empty cache; its
+    files are then kept apart (``AUTOCAST_WARMED_CACHE``, tests/conftest.py) and the runs
+    here start from a copy of them. From a warm cache the warm-up compiles here, into an
+    empty cache of its own (a minute or two of one worker)."""
+    cache = tmp_path / "numba"
+    warmed = os.environ.get("AUTOCAST_WARMED_CACHE")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    if warmed:
+        shutil.copytree(warmed, cache, ignore=shutil.ignore_patterns("warm-up.log"))
+        said = (Path(warmed) / "warm-up.log").read_text().splitlines()
+    else:
+        said = subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, text=True,
+                              timeout=900).stderr.splitlines()
+    # what a first run shows while it compiles: how many, and when it is done
+    assert any(line.startswith("compiling ") and "numba kernels on" in line for line in said), said[-20:]
     assert any(line.startswith("compiled ") and "later runs load them from the cache" in line for line in said), \
-        warm.stderr[-2000:]
-    cached = {p.name for p in (tmp_path / "numba").rglob("*.nbc")}
+        said[-20:]
+    cached = {p.name for p in cache.rglob("*.nbc")}
     assert cached, "the warm-up wrote no numba cache"
     for scenario, scheme in (("overtaking", "autocast"), ("left_turn", "emp")):
         done = subprocess.run([sys.executable, "-m", "deploy.cli", "run", "--scenario", scenario, "--vehicles", "5",
                                "--scheme", scheme, "--duration", "2", "--out", str(tmp_path / "runs")],
                               env=env, capture_output=True, text=True, timeout=900)
         assert done.returncode in (0, 1), done.stderr[-2000:]  # judged (2 s of sim time: a deadlock)
-    grown = {p.name for p in (tmp_path / "numba").rglob("*.nbc")} - cached
+    grown = {p.name for p in cache.rglob("*.nbc")} - cached
     assert not grown, f"compiled during the runs, not by the warm-up: {sorted(grown)}"
 
 

@@ -6,7 +6,9 @@ four host namespaces with their own 10.77.0.x addresses, nothing in the root nam
 runs ``autocast deploy`` inside the first namespace with world and recorder there, the
 channel proxy in the second and the agents in the third and fourth, each namespace with
 its own Zenoh router, and checks that it is judged exactly as ``autocast run`` judges the
-same scenario and seed on one host. It skips, saying why, where namespaces are unavailable.
+same scenario and seed on one host. A second does the same for a corridor of three
+scheduler domains over three namespaces, each domain's agents on a host of their own. They
+skip, saying why, where namespaces are unavailable.
 """
 
 from __future__ import annotations
@@ -133,9 +135,9 @@ def test_a_map_of_several_domains_puts_each_domains_vehicles_on_a_host_of_its_ow
     assert {n: h for n, h in placed.items() if n.startswith("agent")} == {f"agent{v}": "abc"[d]
                                                                          for v, d in START_DOMAIN.items()}
     plan = hosts.plan(hf, place(cfg, hf)).splitlines()  # what --dry-run prints
-    assert [line.split("; ")[1] for line in plan[:4]] == ["runs recorder world agent2 agent3",
-                                                          "runs proxy agent0 agent1", "runs agent4", "runs nothing else"]
-    start = hosts.start_domains(options(tmp_path, *CORRIDOR_FLAGS).run.params)
+    assert [line.split("; ")[1] for line in plan[:4]] == [
+        "runs recorder world agent2 agent3", "runs proxy agent0 agent1", "runs agent4", "runs nothing else"]
+    start = hosts.start_domains(cfg.params)
     assert start == hosts.StartDomains(3, tuple(START_DOMAIN.items()))
 
 
@@ -314,7 +316,7 @@ def _deploy_beside_one_host(tmp_path: Path, lab: netns.Lab, hosts_toml: str, fla
     seen: dict[str, set] = {}
     # Both at once (the same code, less wall time); the second starts once the first has
     # warmed the numba caches (the namespaces share this machine's files) and skips that.
-    deadline = time.monotonic() + 600  # a safety net: measured 90-125 s for the whole test with other jobs running
+    deadline = time.monotonic() + 600  # a safety net: measured 34-125 s (left_turn), 21-28 s (corridor3x) a test
     single = _launch([sys.executable, "-m", "deploy.cli", "run", *flags, "--run-id", "single"], tmp_path / "single.err")
     while "caches warm" not in (tmp_path / "single.err").read_text() and single.poll() is None:
         assert time.monotonic() < deadline, "the single-host run never warmed its caches"

@@ -6,7 +6,9 @@ four host namespaces with their own 10.77.0.x addresses, nothing in the root nam
 runs ``autocast deploy`` inside the first namespace with world and recorder there, the
 channel proxy in the second and the agents in the third and fourth, each namespace with
 its own Zenoh router, and checks that it is judged exactly as ``autocast run`` judges the
-same scenario and seed on one host. It skips, saying why, where namespaces are unavailable.
+same scenario and seed on one host. A second does the same for a corridor of three
+scheduler domains over three namespaces, each domain's agents on a host of their own. They
+skip, saying why, where namespaces are unavailable.
 """
 
 from __future__ import annotations
@@ -116,6 +118,69 @@ def test_no_proxy_host_is_needed_when_the_scheme_shares_nothing(tmp_path):
     hf = parse_hosts({"host": [host("a", "1", run=["world", "recorder"], agents="rest")]})
     names = [spec.name for spec, _ in place(options(tmp_path, "--scheme", "single").run, hf)]
     assert table.PROXY not in names and len(names) == 7
+
+
+CORRIDOR_FLAGS = ["--scenario", "corridor3x", "--vehicles", "5", "--seed", "1"]
+# corridor3x, 5 vehicles, seed 1: the left turn's ego (0) and truck (1) start at J1 (domain
+# 1), the red light's ego (2) and truck (3) at J0 (domain 0), background car 4 at J2 (domain 2)
+START_DOMAIN = {0: 1, 1: 1, 2: 0, 3: 0, 4: 2}  # vehicle id -> the domain it starts in
+
+
+def test_a_map_of_several_domains_puts_each_domains_vehicles_on_a_host_of_its_own(tmp_path):
+    """No host names agents: domain d's vehicles, by where they start, go on the d-th host."""
+    hf = parse_hosts({"host": [host("a", "1", run=["world", "recorder"]), host("b", "2", run=["proxy"]),
+                               host("c", "3"), host("d", "4")]})
+    cfg = options(tmp_path, *CORRIDOR_FLAGS).run
+    placed = {spec.name: h.name for spec, h in place(cfg, hf)}
+    assert {n: h for n, h in placed.items() if n.startswith("agent")} == {f"agent{v}": "abc"[d]
+                                                                         for v, d in START_DOMAIN.items()}
+    plan = hosts.plan(hf, place(cfg, hf)).splitlines()  # what --dry-run prints
+    assert [line.split("; ")[1] for line in plan[:4]] == [
+        "runs recorder world agent2 agent3", "runs proxy agent0 agent1", "runs agent4", "runs nothing else"]
+    start = hosts.start_domains(cfg.params)
+    assert start == hosts.StartDomains(3, tuple(START_DOMAIN.items()))
+
+
+@pytest.mark.parametrize("entries, placed", [
+    ([host("a", "1", run=["world", "recorder", "proxy"], domains=[1]), host("b", "2", domains=[0, 2])],
+     {"agent0": "a", "agent1": "a", "agent2": "b", "agent3": "b", "agent4": "b"}),
+    ([host("a", "1", run=["world", "recorder", "proxy"], domains=[1], agents=[3]), host("b", "2", agents="rest")],
+     {"agent0": "a", "agent1": "a", "agent2": "b", "agent3": "a", "agent4": "b"}),  # a vehicle list comes first
+])
+def test_a_hosts_file_may_place_the_agents_by_domain(tmp_path, entries, placed):
+    hf = parse_hosts({"host": entries})
+    got = {spec.name: h.name for spec, h in place(options(tmp_path, *CORRIDOR_FLAGS).run, hf)}
+    assert {n: h for n, h in got.items() if n.startswith("agent")} == placed
+
+
+@pytest.mark.parametrize("flags, entries, field", [
+    (CORRIDOR_FLAGS, [host("a", "1", run=["world", "recorder", "proxy"]), host("b", "2")],
+     "the map has 3 scheduler domains and the file 2 hosts"),
+    (CORRIDOR_FLAGS, [host("a", "1", run=["world", "recorder", "proxy"], domains=[0, 3], agents="rest")],
+     "domains: 3 is not a scheduler domain of this run's map (0-2)"),
+    (CORRIDOR_FLAGS, [host("a", "1", run=["world", "recorder", "proxy"], domains=[0, 1]),
+                      host("b", "2", domains=[1, 2])], "domain 1 is on a and b"),
+    ([], [host("a", "1", run=["world", "recorder", "proxy"], domains=[1], agents="rest")],
+     "domains: 1 is not a scheduler domain of this run's map (0-0)"),
+    ([], [host("a", "1", run=["world", "recorder", "proxy"]), host("b", "2")], "vehicles 0, 1, 2, 3, 4 are on no host"),
+])
+def test_a_placement_by_domain_that_cannot_be_is_refused(tmp_path, flags, entries, field):
+    with pytest.raises(InputError, match=re.escape(field)):
+        place(options(tmp_path, *flags).run, parse_hosts({"host": entries}))
+
+
+def test_a_map_of_several_domains_is_deployed_unsigned(tmp_path, capsys):
+    """The agents refuse to sign there (docs/domains.md): unsigned by default with a note,
+    and an explicit --sign is refused before anything starts."""
+    flags = ["--hosts", str(EXAMPLE), *CORRIDOR_FLAGS, "--out", str(tmp_path), "--dry-run"]
+    assert hosts.main(flags) == 0
+    out, err = capsys.readouterr()
+    assert "note: a map of several scheduler domains runs unsigned" in err
+    assert "  agent0: " in out and "--credentials" not in out and "--authority" not in out
+    assert hosts.main([*flags, "--sign"]) == 2
+    assert "error: sign: a map of several scheduler domains runs unsigned" in capsys.readouterr().err
+    assert hosts.main(["--hosts", str(EXAMPLE), *RUN_FLAGS, "--out", str(tmp_path), "--dry-run"]) == 0
+    assert "--credentials" in capsys.readouterr().out  # one domain: signed, as before
 
 
 def test_the_cli_refuses_a_bad_hosts_file_before_starting_anything(tmp_path):
@@ -242,44 +307,38 @@ def _processes_in(ns: str) -> set[tuple[str, str, str]]:
     return out
 
 
-@pytest.mark.heavy
-def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_path):
-    reason = netns.unavailable()
-    if reason:
-        pytest.skip(f"network namespaces unavailable: {reason}")
-    out = tmp_path / "runs"
-    flags = [*RUN_FLAGS, "--json", "--out", str(out)]
+def _deploy_beside_one_host(tmp_path: Path, lab: netns.Lab, hosts_toml: str, flags: list[str]
+                            ) -> tuple[dict, dict, dict[str, set]]:
+    """``autocast deploy`` over the lab and ``autocast run`` on this host, the same flags:
+    their records, and who ran in each host's namespace while the deploy ran."""
+    hosts_file = tmp_path / "hosts.toml"
+    hosts_file.write_text(hosts_toml)
     seen: dict[str, set] = {}
-    with netns.Lab(4) as lab:
-        hosts_file = tmp_path / "hosts.toml"
-        hosts_file.write_text(lab.hosts_toml())
-        # Both at once (the same code, less wall time); the second starts once the first has
-        # warmed the numba caches (the namespaces share this machine's files) and skips that.
-        deadline = time.monotonic() + 600  # a safety net: measured 90-125 s for the whole test with other jobs running
-        single = _launch([sys.executable, "-m", "deploy.cli", "run", *flags, "--run-id", "single"],
-                         tmp_path / "single.err")
-        while "caches warm" not in (tmp_path / "single.err").read_text() and single.poll() is None:
-            assert time.monotonic() < deadline, "the single-host run never warmed its caches"
-            time.sleep(0.1)
-        multi = _launch(netns.deploy_argv(lab, hosts_file, [*flags, "--run-id", "multi", "--no-warm-up"]),
-                        tmp_path / "multi.err")
-        while multi.poll() is None and time.monotonic() < deadline:  # who runs where, while it runs
-            for h in lab.hosts:
-                seen.setdefault(h.name, set()).update(_processes_in(h.ns))
-            time.sleep(0.5)
-        many = _result(multi, tmp_path / "multi.err", 10)
-        one = _result(single, tmp_path / "single.err", max(10.0, deadline - time.monotonic()))
-        left = lab.leftovers()
-        names = [h.ns for h in lab.hosts] + [lab.switch]
-        addresses = {h.name: h.address for h in lab.hosts}
+    # Both at once (the same code, less wall time); the second starts once the first has
+    # warmed the numba caches (the namespaces share this machine's files) and skips that.
+    deadline = time.monotonic() + 600  # a safety net: measured 34-125 s (left_turn), 21-28 s (corridor3x) a test
+    single = _launch([sys.executable, "-m", "deploy.cli", "run", *flags, "--run-id", "single"], tmp_path / "single.err")
+    while "caches warm" not in (tmp_path / "single.err").read_text() and single.poll() is None:
+        assert time.monotonic() < deadline, "the single-host run never warmed its caches"
+        time.sleep(0.1)
+    multi = _launch(netns.deploy_argv(lab, hosts_file, [*flags, "--run-id", "multi", "--no-warm-up"]),
+                    tmp_path / "multi.err")
+    while multi.poll() is None and time.monotonic() < deadline:  # who runs where, while it runs
+        for h in lab.hosts:
+            seen.setdefault(h.name, set()).update(_processes_in(h.ns))
+        time.sleep(0.5)
+    many = _result(multi, tmp_path / "multi.err", 10)
+    one = _result(single, tmp_path / "single.err", max(10.0, deadline - time.monotonic()))
+    return many, one, seen
+
+
+def _check_lab_run(lab_names: list[str], left: dict, placed: dict[str, str], addresses: dict[str, str],
+                   seen: dict[str, set], logs: Path) -> None:
+    """The lab is gone and nothing was left in it; each process ran in its host's
+    namespace, connected to that namespace's own router; the routers formed a full mesh."""
     listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
-    assert not any(ns in listed for ns in names), "the lab's namespaces were not deleted"
+    assert not any(ns in listed for ns in lab_names), "the lab's namespaces were not deleted"
     assert left == {}, f"processes left in the namespaces after autocast deploy exited: {left}"
-    assert {k: many[k] for k in COMPARED} == {k: one[k] for k in COMPARED}
-    placed = {"recorder": "h0", "world": "h0", "proxy": "h1", "agent0": "h2", "agent1": "h2",
-              "agent2": "h3", "agent3": "h3", "agent4": "h3"}
-    assert many["hosts"] == placed
-    # Each process ran in its host's namespace, connected to that namespace's own router.
     expected = {h: {("deploy.multihost.router", "", f"tcp/{a}:7447")} for h, a in addresses.items()}
     expected["h0"].add(("deploy.cli", "", ""))  # the launcher
     module = {"recorder": "deploy.record.recorder", "world": "world_server", "proxy": "channel_proxy"}
@@ -287,8 +346,52 @@ def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_pat
         vid = name[len("agent"):] if name.startswith("agent") else ""
         expected[h].add((module.get(name, "vehicle_agent"), vid, f"tcp/{addresses[h]}:7447"))
     assert seen == expected
-    for h in addresses:  # every router was linked to the three others
-        assert "linked to 3 other router(s)" in (out / "multi" / "logs" / f"router-{h}.log").read_text()
+    for h in addresses:  # every router was linked to the others
+        assert f"linked to {len(addresses) - 1} other router(s)" in (logs / f"router-{h}.log").read_text()
+
+
+@pytest.mark.heavy
+def test_deploy_over_network_namespaces_is_judged_as_the_single_host_run(tmp_path):
+    reason = netns.unavailable()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    out = tmp_path / "runs"
+    with netns.Lab(4) as lab:
+        many, one, seen = _deploy_beside_one_host(tmp_path, lab, lab.hosts_toml(), [*RUN_FLAGS, "--json", "--out",
+                                                                                     str(out)])
+        left = lab.leftovers()
+        names = [h.ns for h in lab.hosts] + [lab.switch]
+        addresses = {h.name: h.address for h in lab.hosts}
+    placed = {"recorder": "h0", "world": "h0", "proxy": "h1", "agent0": "h2", "agent1": "h2",
+              "agent2": "h3", "agent3": "h3", "agent4": "h3"}
+    _check_lab_run(names, left, placed, addresses, seen, out / "multi" / "logs")
+    assert {k: many[k] for k in COMPARED} == {k: one[k] for k in COMPARED}
+    assert many["hosts"] == placed
+
+
+@pytest.mark.heavy
+def test_a_corridor_of_three_domains_over_three_namespaces_is_judged_as_on_one_host(tmp_path):
+    """corridor3x (three junctions, each a scheduler domain; the left turn's event at J1,
+    the red light's at J0), 5 vehicles for 3 s: the hosts file places no agent, so each
+    domain's vehicles run in a namespace of their own (domain 0's with the world and
+    recorder on h0, domain 1's with the proxy on h1, domain 2's on h2). Lock-step, the
+    run and each event are judged as the same run on one host."""
+    reason = netns.unavailable()
+    if reason:
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    out = tmp_path / "runs"
+    flags = [*CORRIDOR_FLAGS, "--scheme", "autocast", "--duration", "3", "--json", "--out", str(out)]
+    with netns.Lab(3) as lab:
+        many, one, seen = _deploy_beside_one_host(tmp_path, lab, lab.hosts_toml(by_domain=True), flags)
+        left = lab.leftovers()
+        names = [h.ns for h in lab.hosts] + [lab.switch]
+        addresses = {h.name: h.address for h in lab.hosts}
+    placed = {"recorder": "h0", "world": "h0", "proxy": "h1"} | {f"agent{v}": f"h{d}" for v, d in START_DOMAIN.items()}
+    _check_lab_run(names, left, placed, addresses, seen, out / "multi" / "logs")
+    assert many["hosts"] == placed
+    assert one["mode"] == many["mode"] == "lockstep" and one["ticks"] == 30
+    assert [e["event"] for e in one["events"]] == ["left_turn@J1", "red_light@J0"]
+    assert {k: many[k] for k in (*COMPARED, "events")} == {k: one[k] for k in (*COMPARED, "events")}
 
 
 def test_a_router_that_cannot_start_fails_the_run_at_once(tmp_path):

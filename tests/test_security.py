@@ -358,6 +358,21 @@ def test_the_acl_lets_each_process_put_only_on_its_own_keys(tmp_path):
     assert table.agent_args(cfg, 1)[table.agent_args(cfg, 1).index("--zenoh-config") + 1] == str(paths["agent1"])
 
 
+def test_the_acl_of_a_map_of_several_domains_has_each_domains_net_keys(tmp_path):
+    """corridor3: domains 0, 1, 2 on channels 0, 1, 0; an agent may send in each, the
+    proxy deliver in each (a locked-down run of it was stuck at tick 0 without them)."""
+    cfg = options_from(build_parser().parse_args(["--scenario", "corridor3", "--vehicles", "3", "--out", str(tmp_path),
+                                                   "--run-id", "acl", "--lock-down"]), hub="tcp/127.0.0.1:1").run
+    puts = {name: credentials.own_keys(cfg, name)[0] for name in ("agent2", "proxy")}
+    net = [(0, 0), (1, 1), (0, 2)]
+    assert [k for k in puts["agent2"] if "/net/" in k] == [
+        k for c, d in net for k in (keys.net_ctrl_tx("acl", 2, c, d), keys.net_data_tx("acl", 2, c, d))] + [
+        keys.net_emp_up("acl", 2)]
+    for c, d in net:
+        assert {keys.net_ctrl_rx("acl", c, d), keys.net_data_rx("acl", c, d)} <= set(puts["proxy"])
+    assert "ac/acl/net/c1/d1/data/tx/2" in puts["agent2"] and "ac/acl/net/c1/d1/data/rx" in puts["proxy"]
+
+
 def test_the_world_takes_each_report_once_and_a_late_one_is_no_replay(authority):
     """The ego's reports, verified, reach the world's bookkeeping in order: one of a tick
     already accepted (or older) is a replay; one the world never had, of a tick it has

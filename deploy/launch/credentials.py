@@ -10,8 +10,9 @@ random password per process and per router, a dictionary of them for the routers
 (``transport.auth.usrpwd``), and an access-control list (``access_control``) that
 lets every process subscribe, query and receive on the run's keys but put, reply and
 hold liveliness tokens only on its own: an agent on its ``cmd``, ``report``,
-``rejected`` and ``net/.../tx|up/<vid>`` keys and its token, the world on the world's
-keys and the scans, the proxy on ``net/.../rx``, ``net/stats``, the EMP downlinks and
+``rejected`` and ``net/.../tx|up/<vid>`` keys (in each scheduler domain of the map) and
+its token, the world on the world's keys and the scans, the proxy on ``net/.../rx`` (each
+domain's), ``net/stats``, the EMP downlinks and
 its token, a participant the world is told to wait for (``--wait-for NAME``) on its
 token ``alive/p/NAME`` alone, the launcher only its liveliness token (a compose run's
 world waits for it), the recorder on nothing. A session without a password from the
@@ -120,14 +121,15 @@ def own_keys(cfg: table.RunConfig, name: str) -> tuple[list[str], list[str]]:
     if name == table.WORLD:
         return [keys.world_tick(run), keys.world_truth(run), keys.world_outcome(run), keys.scan(run, "*"),
                 keys.in_shm(keys.scan(run, "*")), keys.world_map(run), keys.mission(run, "*")], []
+    net = table.net_domains(cfg.params)  # each scheduler domain has its own net keys
     if name == table.PROXY:
-        return [keys.net_ctrl_rx(run), keys.net_data_rx(run), keys.in_shm(keys.net_ctrl_rx(run)),
-                keys.in_shm(keys.net_data_rx(run)), keys.net_stats(run), keys.net_emp_down(run, "*")], \
-            [keys.proxy_alive(run)]
+        rx = [k for c, d in net for k in (keys.net_ctrl_rx(run, c, d), keys.net_data_rx(run, c, d))]
+        return [*rx, *map(keys.in_shm, rx), keys.net_stats(run), keys.net_emp_down(run, "*")], [keys.proxy_alive(run)]
     if name.startswith("agent"):
         vid = int(name[len("agent"):])
-        return [keys.cmd(run, vid), keys.report(run, vid), keys.rejected(run, vid), keys.net_ctrl_tx(run, vid),
-                keys.net_data_tx(run, vid), keys.net_emp_up(run, vid)], [keys.alive(run, vid)]
+        tx = [k for c, d in net for k in (keys.net_ctrl_tx(run, vid, c, d), keys.net_data_tx(run, vid, c, d))]
+        return [keys.cmd(run, vid), keys.report(run, vid), keys.rejected(run, vid), *tx,
+                keys.net_emp_up(run, vid)], [keys.alive(run, vid)]
     if name == LAUNCHER:  # its token tells the world that the recorder is up (deploy.multihost.compose_launcher)
         return [], [keys.participant_alive(run, LAUNCHER)]
     if name.startswith(PARTICIPANT):  # its token, so the world may start; nothing else

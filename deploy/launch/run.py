@@ -124,7 +124,7 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     ap.add_argument("--realtime", action="store_true", help="the world ticks on the wall clock instead of lock-step")
     add_model_args(ap)
     sec = ap.add_argument_group("security (docs/security.md)")
-    sign_default_text = {True: "on", False: "off", None: "on; off for a --compose file"}[sign_default]
+    sign_default_text = {True: "on", False: "off", None: "on; off for a --compose file and for a map of several domains"}[sign_default]
     sec.add_argument("--sign", action=argparse.BooleanOptionalAction, default=sign_default,
                      help="V2X messages signed by each vehicle's certificate from the run's authority and verified "
                           f"by every receiver (default {sign_default_text})")

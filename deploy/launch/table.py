@@ -81,6 +81,13 @@ def connected_vids(params: ScenarioParams) -> tuple[int, ...]:
     return tuple(a.vid for a in build(params).connected())
 
 
+@functools.lru_cache(maxsize=8)
+def net_domains(params: ScenarioParams) -> tuple[tuple[int, int], ...]:
+    """(channel, domain) of each scheduler domain of the scenario's map (docs/domains.md):
+    ``((0, 0),)`` for a map of one."""
+    return tuple((d.channel, d.domain_id) for d in build(params).roadmap.to_msg().scheduler_domains())
+
+
 def needs_proxy(scheme: str) -> bool:
     """Every scheme that shares needs the medium (``emp``: the proxy's edge-relay mode)."""
     return scheme not in NO_PROXY_SCHEMES

@@ -6,7 +6,9 @@ The hosts file (``deploy/hosts.example.toml``, ``docs/multihost.md``) names each
 its address, the command prefix that runs one shell command line there (``ssh
 user@host``, ``ip netns exec NAME sh -c``; default ``sh -c``, this machine) and which
 of the run's processes it takes (``run = ["world", "recorder", "proxy"]``,
-``agents = 3``, ``agents = [0, 4]`` or ``agents = "rest"``).
+``agents = 3``, ``agents = [0, 4]``, ``agents = "rest"`` or ``domains = [1]``: the
+vehicles that start in scheduler domain 1). A map of several domains whose hosts file
+places no agent gets each domain's vehicles on a host of its own, domain d on the d-th.
 
 The run is the same table of processes as ``autocast run`` (``deploy.launch.table``). Each
 host gets one Zenoh router (``deploy.multihost.router``) connected to the routers of the hosts
@@ -21,8 +23,10 @@ and prints the outcome as ``autocast run`` does. Same flags and exit codes as
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
+import math
 import os
 import re
 import shlex
@@ -43,6 +47,8 @@ from deploy.launch import run, table, warmup
 from deploy.multihost.remote import PID_LINE
 from processes.manager import ProcessManager, ProcSpec
 from protocol.session import ZenohArgs, session_scope
+from vehicle_agent.domains import DomainTable
+from world_server.scenarios import ScenarioParams, build
 
 log = logging.getLogger("deploy.multihost.hosts")
 
@@ -77,6 +83,7 @@ class Host:
     warm_up: bool = True  # warm the host's numba caches before the run
     run: tuple[str, ...] = ()  # of world, proxy, recorder
     agents: int | tuple[int, ...] | str = 0  # a count, a list of vehicle ids, or "rest"
+    domains: tuple[int, ...] = ()  # the agents of the vehicles that start in these scheduler domains
 
     @property
     def endpoint(self) -> str:
@@ -113,7 +120,7 @@ class HostsFile:
         return tuple(h.endpoint for h in self.hosts)
 
 
-_HOST_ONLY = ("name", "address", "run", "agents")
+_HOST_ONLY = ("name", "address", "run", "agents", "domains")
 _SHARED = tuple(f.name for f in dataclasses.fields(Host) if f.name not in _HOST_ONLY)
 
 
@@ -212,10 +219,14 @@ def _host(i: int, entry: dict[str, Any]) -> Host:
         agents = tuple(agents)
     elif not (agents == REST or (isinstance(agents, int) and not isinstance(agents, bool) and agents >= 0)):
         raise bad("agents", f"a count, a list of vehicle ids or {REST!r}")
+    domains = entry.get("domains", [])
+    if not isinstance(domains, list) or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0
+                                                for d in domains):
+        raise bad("domains", "a list of scheduler domain ids")
     return Host(name=name, address=entry["address"], prefix=tuple(prefix) or LOCAL_PREFIX, port=port, tls_port=tls_port,
                 listen=entry.get("listen", ""), workdir=entry.get("workdir", str(REPO)),
                 python=entry.get("python", sys.executable), env=tuple(sorted(env.items())), warm_up=warm_up,
-                run=tuple(roles), agents=agents)
+                run=tuple(roles), agents=agents, domains=tuple(domains))
 
 
 # ---------------------------------------------------------------------------- placement
@@ -234,14 +245,46 @@ def place(cfg: table.RunConfig, hf: HostsFile, hub_of: Callable[[Host], str] = l
             host_of[role] = holders[0]
         elif role != table.PROXY or table.needs_proxy(cfg.scheme):
             raise run.InputError(f"hosts: {role}: no host runs it (add it to one host's run = [...])")
-    for vid, host in assign_agents(table.connected_vids(cfg.params), hf.hosts).items():
+    for vid, host in assign_agents(table.connected_vids(cfg.params), hf.hosts, start_domains(cfg.params)).items():
         host_of[table.agent_name(vid)] = host
     rows = {h.name: {s.name: s for s in table.processes(replace(cfg, hub=hub_of(h)))} for h in hf.hosts}
     return [(rows[host_of[spec.name].name][spec.name], host_of[spec.name]) for spec in table.processes(cfg)]
 
 
-def assign_agents(vids: Sequence[int], hosts: Sequence[Host]) -> dict[int, Host]:
-    """Vehicle id -> host: lists first, then counts in host order, then "rest"."""
+@dataclass(frozen=True, slots=True)
+class StartDomains:
+    """The scheduler domain each connected vehicle starts in, and how many the map has."""
+
+    n_domains: int = 1
+    domain_of: tuple[tuple[int, int], ...] = ()  # (vehicle id, domain)
+
+
+@functools.lru_cache(maxsize=8)
+def start_domains(params: ScenarioParams) -> StartDomains:
+    """Each connected vehicle's domain: the one its start position is in
+    (``DomainTable.membership``; in the overlap of two, the one whose centre is nearer).
+    Its agent runs on that domain's host for the whole run, wherever it drives."""
+    scene = build(params)
+    domains = DomainTable.of(scene.roadmap.to_msg())
+    pairs = []
+    for actor in scene.connected():
+        x, y, _ = actor.start_pose()
+        pairs.append((actor.vid, min(domains.membership(x, y), key=lambda d: math.dist((x, y), domains.center[d]))))
+    return StartDomains(len(domains), tuple(pairs))
+
+
+def assign_agents(vids: Sequence[int], hosts: Sequence[Host], start: StartDomains = StartDomains()
+                  ) -> dict[int, Host]:
+    """Vehicle id -> host: lists first, then domains, then counts in host order, then
+    "rest". For a map of several domains, a hosts file that places no agent puts domain
+    d's vehicles on the d-th host."""
+    domains_on = {h.name: h.domains for h in hosts}
+    if start.n_domains > 1 and all(h.agents == 0 and not h.domains for h in hosts):
+        if len(hosts) < start.n_domains:
+            raise run.InputError(f"hosts: agents: the map has {start.n_domains} scheduler domains and the file "
+                                 f"{len(hosts)} hosts; give each domain a host, or place the agents "
+                                 "(agents = ..., domains = [...])")
+        domains_on = {h.name: (d,) for d, h in enumerate(hosts[:start.n_domains])}
     out: dict[int, Host] = {}
     for h in hosts:
         if isinstance(h.agents, tuple):
@@ -252,6 +295,18 @@ def assign_agents(vids: Sequence[int], hosts: Sequence[Host]) -> dict[int, Host]
                 if vid in out:
                     raise run.InputError(f"hosts: agents: vehicle {vid} is on {out[vid].name} and {h.name}")
                 out[vid] = h
+    host_of_domain: dict[int, Host] = {}
+    for h in hosts:
+        for d in domains_on.get(h.name, ()):
+            if d >= start.n_domains:
+                raise run.InputError(f"hosts: host {h.name!r}: domains: {d} is not a scheduler domain of this "
+                                     f"run's map (0-{start.n_domains - 1})")
+            if d in host_of_domain:
+                raise run.InputError(f"hosts: domains: domain {d} is on {host_of_domain[d].name} and {h.name}")
+            host_of_domain[d] = h
+    for vid, d in start.domain_of:
+        if vid in vids and vid not in out and d in host_of_domain:
+            out[vid] = host_of_domain[d]
     free = [v for v in vids if v not in out]
     for h in hosts:
         if isinstance(h.agents, int):
@@ -726,6 +781,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compose", metavar="FILE", help="write a docker compose file for this run and hosts "
                     "(one service per process, a router per host); start nothing")
     args = ap.parse_args(argv)
+    sign_asked = args.sign
     if args.sign is None:  # signed by default; a compose file has no credentials to sign with
         args.sign = not args.compose
     level = args.log_level.upper()
@@ -734,6 +790,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         opts = run.options_from(args, hub="", fresh=not args.compose)
         hf = load_hosts(args.hosts)
+        if opts.run.signing and start_domains(opts.run.params).n_domains > 1:  # the agents refuse to sign there
+            if sign_asked:
+                raise run.InputError("sign: a map of several scheduler domains runs unsigned (docs/domains.md); "
+                                     "drop --sign")
+            print("note: a map of several scheduler domains runs unsigned (docs/domains.md)", file=sys.stderr)
+            opts = replace(opts, run=replace(opts.run, signing=False))
+            args.sign = False
         placed = place(opts.run, hf)
     except run.InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

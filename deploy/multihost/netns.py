@@ -9,9 +9,11 @@ and the lab's 10.77.0.0/24 is invisible outside it. Names carry a random tag
 still runs in them and deletes them, also after a failure. Needs root.
 
     sudo python -m deploy.multihost.netns [--hosts 4] -- --scenario left_turn --vehicles 5 --scheme autocast
+    sudo python -m deploy.multihost.netns --hosts 3 --by-domain -- --scenario corridor3 --vehicles 5 --scheme autocast
 
 builds a lab, writes a hosts file that puts the world and the recorder on h0, the
-channel proxy on h1 and the agents on the others (prefix ``ip netns exec <ns> sh -c``,
+channel proxy on h1 and the agents on the others, or with ``--by-domain`` each scheduler
+domain's on a host of its own (prefix ``ip netns exec <ns> sh -c``,
 one Zenoh router per namespace), runs ``autocast deploy`` with the given flags inside
 h0, checks that no process of the run is left in any namespace, and deletes the lab.
 """
@@ -120,24 +122,26 @@ class Lab:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self._made.clear()
 
-    def hosts_toml(self, port: int = PORT) -> str:
+    def hosts_toml(self, port: int = PORT, by_domain: bool = False) -> str:
         """A hosts file: world and recorder on h0, the proxy on h1, the agents on the rest.
 
         With two hosts, h1 takes the agents too; with three, h2 takes them all; with four
-        or more, h2 takes two and the last host the rest. The namespaces share this
-        machine's files, whose numba caches the launcher warms: no per-host warm-up.
+        or more, h2 takes two and the last host the rest. ``by_domain``: no host names
+        agents, so a map of several scheduler domains has domain d's vehicles on host d.
+        The namespaces share this machine's files, whose numba caches the launcher warms:
+        no per-host warm-up.
         """
         hosts = self.hosts
         if len(hosts) < 2:
             raise ValueError("a lab for deploy needs at least two hosts")
-        agents: dict[str, object] = {}
-        if len(hosts) == 2:
-            agents[hosts[1].name] = "rest"
+        if by_domain:
+            agents: dict[str, object] = {}
+        elif len(hosts) == 2:
+            agents = {hosts[1].name: "rest"}
         elif len(hosts) == 3:
-            agents[hosts[2].name] = "rest"
+            agents = {hosts[2].name: "rest"}
         else:
-            agents[hosts[2].name] = 2
-            agents[hosts[-1].name] = "rest"
+            agents = {hosts[2].name: 2, hosts[-1].name: "rest"}
         lines = ["# written by deploy.multihost.netns: one host per network namespace", "",
                  "[defaults]", f"port = {port}", f"workdir = {_q(str(Path(__file__).resolve().parents[2]))}",
                  f"python = {_q(sys.executable)}", "warm_up = false", ""]
@@ -174,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m deploy.multihost.netns", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hosts", type=int, default=4, help="host namespaces (default 4, at least 2)")
+    ap.add_argument("--by-domain", action="store_true", help="place no agent in the hosts file: a map of several "
+                    "scheduler domains has domain d's vehicles on host hd")
     ap.add_argument("flags", nargs=argparse.REMAINDER, help="-- then autocast deploy's flags")
     args = ap.parse_args(argv)
     flags = args.flags[1:] if args.flags[:1] == ["--"] else args.flags
@@ -183,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with Lab(args.hosts) as lab, tempfile.TemporaryDirectory() as tmp:
         hosts_file = Path(tmp) / "hosts.toml"
-        hosts_file.write_text(lab.hosts_toml())
+        hosts_file.write_text(lab.hosts_toml(by_domain=args.by_domain))
         print(f"lab {lab.tag}: " + ", ".join(f"{h.name}={h.ns}@{h.address}" for h in lab.hosts), file=sys.stderr)
         code = subprocess.run(deploy_argv(lab, hosts_file, flags)).returncode
         left = lab.leftovers()

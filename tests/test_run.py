@@ -335,7 +335,8 @@ def test_a_run_cut_short_by_the_wall_clock_limit_is_failed_not_judged(launches):
                                           (["--scheme", "single", "--scheduler", "greedy"], "scheduler"),
                                           (["--channel-profile", "5g-magic"], "channel_profile"),
                                           (["--scheme", "emp", "--channel-profile", "dsrc"], "channel_profile"),
-                                          (["--wait-for", "a/b"], "wait_for")])
+                                          (["--wait-for", "a/b"], "wait_for"),
+                                          (["--scenario", "corridor3", "--sign"], "sign")])
 def test_a_bad_flag_is_refused_naming_the_field(tmp_path, capsys, flags, field):
     assert run_main(["--out", str(tmp_path), *flags]) == 2
     assert f"error: {field}: " in capsys.readouterr().err

@@ -46,7 +46,7 @@ from protocol.model import OURS, Model, ModelError, add_model_args, model_from
 from protocol.security import REJECTED_LINE
 from protocol.session import MALFORMED_LINE, DropCounter, ZenohArgs, session_scope, typed_handler
 from world_server.__main__ import summary
-from world_server.scenarios import ScenarioError, ScenarioParams, params_from_dict
+from world_server.scenarios import ScenarioError, ScenarioParams, build, params_from_dict
 
 log = logging.getLogger("deploy.launch.run")
 
@@ -505,6 +505,8 @@ def main(argv: list[str] | None = None) -> int:
                         else "INFO", format="autocast run: %(message)s")
     try:
         opts = options_from(args, hub="")
+        if opts.run.signing and len(build(opts.run.params).roadmap.domains) > 1:  # the agents would refuse it
+            raise InputError("sign: a map of several scheduler domains runs unsigned (docs/domains.md); drop --sign")
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

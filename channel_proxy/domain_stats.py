@@ -9,7 +9,9 @@ proxy's ``data.offered_bytes`` of the domain: every transmission, a repeated cop
 again) over what the data channel carries in an interval, B x N x T_n / 8 of the run's
 channel profile (``lte-direct``: 90,000 bytes). Domains on one channel share its
 medium: the channel's load is the sum of theirs. An interval in which a domain had no
-member counts 0 members and 0 bytes for it.
+member counts 0 members and 0 bytes for it. A domain's control messages **dropped**
+are those the channel's control pool had no room for (the proxy's ``ctrl.overflow_msgs``
+of the domain): the pool is per channel, shared by the domains on it.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class DomainStats:
     transmissions: dict[str, int] = field(default_factory=Counter)
     collided: dict[str, int] = field(default_factory=Counter)
     delivered_bytes: dict[str, int] = field(default_factory=Counter)
+    ctrl_sent: dict[str, int] = field(default_factory=Counter)  # control messages sent in the domain
+    ctrl_dropped: dict[str, int] = field(default_factory=Counter)  # ... that the channel's control pool had no room for
     channel: dict[str, int] = field(default_factory=dict)
     joins: Counter = field(default_factory=Counter)  # domain -> vehicles that joined it
     leaves: Counter = field(default_factory=Counter)
@@ -58,7 +62,7 @@ def summarise(stats: Iterable[dict]) -> DomainStats:
         now: dict[int, set[str]] = defaultdict(set)
         for d, ds in s["domains"].items():
             out.channel[d] = ds["channel"]
-            data = ds.get("data", {})
+            data, ctrl = ds.get("data", {}), ds.get("ctrl", {})
             out.members.setdefault(d, [0] * i).append(len(ds["members"]))
             out.offered_bytes.setdefault(d, [0] * i).append(data.get("offered_bytes", 0))
             for v in ds["members"]:
@@ -66,6 +70,8 @@ def summarise(stats: Iterable[dict]) -> DomainStats:
             out.transmissions[d] += data.get("transmissions", 0)
             out.collided[d] += data.get("collided_tx", 0)
             out.delivered_bytes[d] += data.get("delivered_bytes", 0)
+            out.ctrl_sent[d] += ctrl.get("senders", 0)
+            out.ctrl_dropped[d] += ctrl.get("overflow_msgs", 0)
         for d in out.members:
             if len(out.members[d]) == i:  # no member this interval
                 out.members[d].append(0)
@@ -85,23 +91,26 @@ def run_summary(s: DomainStats, capacity_bytes: int) -> dict[str, Any]:
     return {"intervals": s.intervals, "capacity_bytes": capacity_bytes, "in_two": s.in_two,
             "domains": {d: {"channel": s.channel[d], "members": s.members[d], "offered_bytes": s.offered_bytes[d],
                             "joined": s.joins[d], "left": s.leaves[d], "transmissions": s.transmissions[d],
-                            "collided": s.collided[d], "delivered_bytes": s.delivered_bytes[d]}
+                            "collided": s.collided[d], "delivered_bytes": s.delivered_bytes[d],
+                            "ctrl_sent": s.ctrl_sent[d], "ctrl_dropped": s.ctrl_dropped[d]}
                         for d in sorted(s.members, key=int)}}
 
 
 def table(s: DomainStats, capacity_bytes: int) -> str:
     rows = ["| domain | channel | members per interval, mean (min-max) | joined | left | load per interval, "
-            "median (max) | transmissions | collided | delivered kB per interval |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "median (max) | transmissions | collided | delivered kB per interval | control messages dropped |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for d in sorted(s.members, key=int):
         m = np.array(s.members[d])
         load = np.array(s.offered_bytes[d]) / capacity_bytes
         rows.append(f"| {d} | {s.channel[d]} | {m.mean():.1f} ({m.min()}-{m.max()}) | {s.joins[d]} | {s.leaves[d]} | "
                     f"{np.median(load):.2f} ({load.max():.2f}) | "
                     f"{s.transmissions[d]} | {s.collided[d]} ({s.collided[d] / max(s.transmissions[d], 1):.0%}) | "
-                    f"{s.delivered_bytes[d] / 1e3 / max(len(m), 1):.1f} |")
+                    f"{s.delivered_bytes[d] / 1e3 / max(len(m), 1):.1f} | "
+                    f"{s.ctrl_dropped[d]} ({s.ctrl_dropped[d] / max(s.ctrl_sent[d], 1):.0%}) |")
     rows.append(f"\n{s.intervals} intervals; vehicle-intervals in two domains at once: {s.in_two}; "
-                f"load: bytes on the air over {capacity_bytes} bytes an interval")
+                f"load: bytes on the air over {capacity_bytes} bytes an interval; control messages dropped: "
+                f"no room in the channel's control pool, of those sent in the domain")
     return "\n".join(rows)
 
 

@@ -146,16 +146,18 @@ def test_vehicles_that_heard_the_same_messages_of_a_domain_agree_on_its_schedule
 def test_domain_stats_count_members_handovers_and_collisions():
     from channel_proxy.domain_stats import summarise
 
-    def interval(members, collided=0):
+    def interval(members, collided=0, dropped=0):
         return {"domains": {d: {"channel": int(d) % 2, "members": m,
+                                "ctrl": {"senders": len(m), "overflow_msgs": dropped if d == "0" else 0},
                                 "data": {"transmissions": 4, "collided_tx": collided, "delivered_bytes": 1000}}
                             for d, m in members.items()}}
 
-    s = summarise([interval({"0": [1, 2], "1": [3]}), interval({"0": [1, 2], "1": [2, 3]}, 1),
+    s = summarise([interval({"0": [1, 2], "1": [3]}), interval({"0": [1, 2], "1": [2, 3]}, 1, dropped=1),
                    interval({"0": [1], "1": [2, 3]}), {"ctrl": {}}])
     assert s.intervals == 3 and s.members["0"] == [2, 2, 1] and s.members["1"] == [1, 2, 2]
     assert s.joins == {"1": 1} and s.leaves == {"0": 1} and s.in_two == 1  # vehicle 2 handed over from 0 to 1
     assert s.transmissions == {"0": 12, "1": 12} and s.collided == {"0": 1, "1": 1}
+    assert s.ctrl_sent == {"0": 5, "1": 5} and s.ctrl_dropped == {"0": 1, "1": 0}  # one of domain 0's 2 + 2 + 1 messages
 
 
 def test_domain_stats_count_an_empty_interval_as_zero_and_the_load_on_the_air():
@@ -174,7 +176,7 @@ def test_domain_stats_count_an_empty_interval_as_zero_and_the_load_on_the_air():
     summary = run_summary(s, 90_000)
     assert summary["domains"]["1"] == {"channel": 0, "members": [0, 1, 0], "offered_bytes": [0, 90_000, 0],
                                        "joined": 1, "left": 1, "transmissions": 1, "collided": 0,
-                                       "delivered_bytes": 0}
+                                       "delivered_bytes": 0, "ctrl_sent": 0, "ctrl_dropped": 0}
     # load per interval: 45000 / 90000 = 0.5, 0.1, 0: median 0.10, max 0.50; domain 1: 0, 1, 0
     assert "| 0 | 0 | 2.0 (2-2) | 0 | 0 | 0.10 (0.50) |" in table(s, 90_000)
     assert "| 1 | 0 | 0.3 (0-1) | 1 | 1 | 0.00 (1.00) |" in table(s, 90_000)

@@ -1,9 +1,12 @@
 import numpy as np
 import pytest
 
+from vehicle_agent.domains import DomainTable
+from world_server import scenarios
 from world_server.geometry import box_corners, first_crossing, point_at, rect_distance
+from world_server.roadmap import DOMAIN_RADIUS_M, corridor, grid, intersection
 from world_server.scenarios import SCENARIOS, ScenarioError, ScenarioParams, build, load_scenario_file, \
-    params_from_dict
+    params_from_dict, vehicle_bound
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -36,18 +39,31 @@ def test_left_turn_geometry_by_hand():
     assert sc.conflict_xy[1] == pytest.approx(np.sqrt(9.75**2 - 2.75**2) - 8, abs=0.02)  # arc drawn as chords
 
 
-@pytest.mark.parametrize("name", SCENARIOS)
-@pytest.mark.parametrize("n", [2, 5, 20, 40])
-def test_vehicles_are_placed_without_overlap(name, n):
-    sc = build(ScenarioParams(scenario=name, vehicles=n, seed=3))
-    assert [a.vid for a in sc.connected()] == list(range(n))
-    assert [a.vid for a in sc.passive()] == list(range(n, len(sc.actors)))
+def _assert_no_overlap(sc):
     poses = np.array([a.start_pose() for a in sc.actors])
     corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], [a.spec.length_m for a in sc.actors],
                           [a.spec.width_m for a in sc.actors])
     for i in range(len(corners)):
         for j in range(i + 1, len(corners)):
             assert rect_distance(corners[i], corners[j]) > 0.3, (sc.actors[i], sc.actors[j])
+
+
+def _members_at_start(sc) -> np.ndarray:
+    """Connected vehicles per scheduler domain at t = 0, by the agents' membership rule."""
+    table = DomainTable.of(sc.roadmap.to_msg())
+    members = np.zeros(len(table), dtype=np.int64)
+    for a in sc.connected():
+        members[list(table.membership(*a.route[0]))] += 1
+    return members
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+@pytest.mark.parametrize("n", [2, 5, 20, 40, 64])
+def test_vehicles_are_placed_without_overlap(name, n):
+    sc = build(ScenarioParams(scenario=name, vehicles=n, seed=3))
+    assert [a.vid for a in sc.connected()] == list(range(n))
+    assert [a.vid for a in sc.passive()] == list(range(n, len(sc.actors)))
+    _assert_no_overlap(sc)
 
 
 def test_same_seed_same_scene_other_seed_other_scene():
@@ -58,7 +74,7 @@ def test_same_seed_same_scene_other_seed_other_scene():
 
 @pytest.mark.parametrize("values, field", [
     ({"scenario": "roundabout"}, "scenario"),
-    ({"vehicles": 500}, "vehicles"),
+    ({"vehicles": 64 * 256 + 1}, "vehicles"),  # beyond any map's: 64 a domain, at most 256 domains
     ({"vehicles": 2.5}, "vehicles"),
     ({"collider_speed_kmh": -3}, "collider_speed_kmh"),
     ({"delta_s": float("nan")}, "delta_s"),
@@ -80,9 +96,44 @@ def test_scenario_file(tmp_path):
         load_scenario_file(bad)
 
 
+def test_a_map_holds_64_connected_vehicles_a_scheduler_domain():
+    assert (vehicle_bound(intersection()), vehicle_bound(corridor(3)), vehicle_bound(grid(2, 2))) == (64, 192, 256)
+    with pytest.raises(ScenarioError, match=r"^vehicles: 65 is not in \[2, 64\] \(64 a scheduler domain; "
+                                            r"left_turn's map has 1\)"):
+        build(ScenarioParams(scenario="left_turn", vehicles=65))
+    with pytest.raises(ScenarioError, match=r"^vehicles: 193 is not in \[2, 192\] \(64 a scheduler domain; "
+                                            r"corridor3's map has 3\)"):
+        build(ScenarioParams(scenario="corridor3", vehicles=193))
+
+
 def test_too_many_vehicles_for_the_scene_is_a_clear_error():
-    with pytest.raises(ScenarioError, match="^vehicles: only"):
-        build(ScenarioParams(scenario="overtaking", vehicles=64))
+    with pytest.raises(ScenarioError, match="^vehicles: only 1[0-9][0-9] connected vehicles fit the corridor3x scene, "
+                                            "asked for 192"):  # within the bound, beyond what its lanes hold
+        build(ScenarioParams(scenario="corridor3x", vehicles=192, duration_s=0.5))
+
+
+def test_the_background_fills_the_places_near_a_junction_first_then_stands_further_out():
+    near = build(ScenarioParams(scenario="left_turn", vehicles=59, seed=0))  # the places within R/2 hold 59
+    far = build(ScenarioParams(scenario="left_turn", vehicles=64, seed=0))
+    out = [a for a in far.actors if a.role == "background" and np.hypot(*a.route[0]) > DOMAIN_RADIUS_M]
+    assert all(np.hypot(*a.route[0]) <= DOMAIN_RADIUS_M for a in near.actors if a.role == "background")
+    assert len(out) >= 5 and all(a.speed_mps == 0 for a in out)
+    assert all(np.array_equal(a.route, b.route) and a.kind == b.kind for a, b in zip(near.actors, far.actors)
+               if a.role == "background")  # the near places as if the far ones were not there
+
+
+def test_a_corridor_of_three_holds_120_no_domain_over_64():
+    sc = build(ScenarioParams(scenario="corridor3x", vehicles=120, seed=0))
+    assert len(sc.connected()) == 120 and _members_at_start(sc).max() <= 64
+    _assert_no_overlap(sc)
+
+
+def test_no_domain_gets_more_members_than_it_holds(monkeypatch):
+    p = ScenarioParams(scenario="corridor3", vehicles=30, duration_s=2.0)
+    assert _members_at_start(build(p)).max() > 12  # placed freely, one junction's domain gets more than 12
+    monkeypatch.setattr(scenarios, "MAX_VEHICLES_PER_DOMAIN", 12)
+    members = _members_at_start(build(p))
+    assert members.max() == 12 and members.sum() >= 30  # (a vehicle in an overlap counts in both)
 
 
 def test_rect_distance_by_hand():

@@ -88,7 +88,7 @@ def test_a_model_other_than_ours_is_in_every_key_and_every_run_s_flags(tmp_path)
 
 
 @pytest.mark.parametrize("over, message", [
-    ({"vehicles": [5, 500]}, "vehicles: 500 is not in [2, 64]"),
+    ({"vehicles": [5, 20000]}, "vehicles: 20000 is not in [2, 16384]"),  # a scenario's map bounds it further
     ({"schemes": ["telepathy"]}, "schemes: 'telepathy' is not one of"),
     ({"scenarios": ["roundabout"]}, "scenarios: 'roundabout' is not one of"),
     ({"deltas_s": []}, "deltas_s: [] is not a non-empty list"),
@@ -120,7 +120,8 @@ def test_cli_refuses_bad_input_naming_the_field(tmp_path, capsys):
     assert sweep.main(["--preset", "nope"]) == 2
     assert "error: preset: 'nope' is not one of paper, smoke" in capsys.readouterr().err
     assert sweep.main(["--preset", "smoke", "--vehicles", "5,500", "--dry-run"]) == 2
-    assert "error: vehicles: 500 is not in [2, 64]" in capsys.readouterr().err
+    assert "error: vehicles: 500 is not in [2, 64] (64 a scheduler domain; left_turn's map has 1) " \
+        "(run left_turn-v500-" in capsys.readouterr().err
     f = tmp_path / "s.toml"
     f.write_text('preset = "smoke"\nvehicle = [5]\n')
     assert sweep.main(["--file", str(f), "--dry-run"]) == 2

@@ -35,7 +35,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     sc = ap.add_argument_group("scenario")
     sc.add_argument("--scenario", default=None, help="overtaking | left_turn | red_light (default left_turn); "
                     "corridor3 | grid4 | corridor3x | grid4_handover: several junctions (docs/domains.md)")
-    sc.add_argument("--vehicles", type=int, default=None, help="connected vehicles in range, ego included (default 10)")
+    sc.add_argument("--vehicles", type=int, default=None,
+                    help="connected vehicles in range, ego included (default 10; at most 64 a scheduler domain "
+                    "of the map)")
     sc.add_argument("--collider-speed", type=float, default=None, metavar="KMH", help="collider base speed (default 30)")
     sc.add_argument("--delta", type=float, default=None, metavar="SECONDS",
                     help="collider reaches the conflict point this long after the ego (default 0)")

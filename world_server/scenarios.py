@@ -25,6 +25,10 @@ Background vehicles are queued (stationary) on approach lanes and parking strips
 drive away from the centre on exit lanes; a candidate is kept only if, driven at its
 speed along its lane, it never comes near an actor or another kept vehicle within the
 scenario's duration, so the background adds occlusion and channel load, not crashes.
+They are placed within R/2 of a junction first and, when those places are full, further
+out along the arms. A map holds ``MAX_VEHICLES_PER_DOMAIN`` connected vehicles per
+scheduler domain: no domain gets more members than that at t = 0, and a run asks for at
+most that many times the map's domains.
 
 A scenario is a builder ``(ScenarioParams) -> Scenario`` that places the ego, the
 occluder and the collider; ``build`` adds the background. A scenario may hold several
@@ -49,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from protocol import plugins
-from protocol.messages import VehicleSpec
+from protocol.messages import MAX_DOMAINS, VehicleSpec
 from world_server.geometry import arc_lengths, first_crossing, point_at, project_s
 from world_server.roadmap import DOMAIN_RADIUS_M, LEFT_OF, OPPOSITE, RoadMap, corridor, grid, intersection, \
     straight_road
@@ -72,6 +76,7 @@ OVERTAKE_EGO_KMH, LEFT_TURN_EGO_KMH, RED_LIGHT_EGO_KMH = 20.0, 30.0, 40.0  # the
 OVERTAKE_BRAKE_LENGTHS = 3.0  # the oncoming traffic brakes fully for a vehicle this many own lengths ahead
 OVERTAKE_RAMP_M = (12.0, 4.0)  # the ego's route leaves its lane this far behind the truck's centre, is
 # in the oncoming lane this far behind it (and mirrored past it)
+MAX_VEHICLES_PER_DOMAIN = 64  # connected vehicles of one scheduler domain; a map of D domains holds D times that
 BACKGROUND_SPEED_MPS = 12.0
 BACKGROUND_SPACING_M = 9.5
 TRUCK_SHARE = 0.15
@@ -103,7 +108,8 @@ class ScenarioParams:
         builder_of(self.scenario)  # raises ScenarioError naming the field
         if self.duration_s == 0:
             object.__setattr__(self, "duration_s", time_limit_s(self.scenario))
-        _check_range("vehicles", self.vehicles, 2, 64, int)
+        # the scenario's map bounds it further (``build``: MAX_VEHICLES_PER_DOMAIN a domain)
+        _check_range("vehicles", self.vehicles, 2, MAX_VEHICLES_PER_DOMAIN * MAX_DOMAINS, int)
         _check_range("collider_speed_kmh", self.collider_speed_kmh, 5.0, 80.0, float)
         _check_range("delta_s", self.delta_s, -5.0, 5.0, float)
         _check_range("seed", self.seed, 0, 2**31 - 1, int)
@@ -310,10 +316,20 @@ def builder_of(name: Any) -> Builder:
 def build(params: ScenarioParams) -> Scenario:
     """Place every actor for ``params``; deterministic in ``params.seed``."""
     scenario = builder_of(params.scenario)(params)
+    bound, m = vehicle_bound(scenario.roadmap), scenario.roadmap
+    _check(params.vehicles <= bound, "vehicles", params.vehicles,
+           f"in [2, {bound}] ({MAX_VEHICLES_PER_DOMAIN} a scheduler domain; {params.scenario}'s map has "
+           f"{len(m.domain_centers())})")
     _check_roles(scenario, params)
     _check_events(scenario, params)
     _add_background(scenario, np.random.default_rng(params.seed))
     return scenario
+
+
+def vehicle_bound(m: RoadMap) -> int:
+    """The connected vehicles a run on map ``m`` may ask for: ``MAX_VEHICLES_PER_DOMAIN``
+    for each of its scheduler domains (64 on a map of one, 192 on a corridor of three)."""
+    return MAX_VEHICLES_PER_DOMAIN * len(m.domain_centers())
 
 
 def _check_roles(scenario: Scenario, p: ScenarioParams) -> None:
@@ -608,14 +624,16 @@ def _clash(a: np.ndarray, ra: float, b: np.ndarray, rb: float, margin_m: float) 
     return bool((d < ra + rb + margin_m).any())
 
 
-def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
-    p, m = scenario.params, scenario.roadmap
-    n_needed = p.vehicles - sum(a.connected for a in scenario.actors)
-    times = np.arange(0.0, p.duration_s + 1e-9, 0.25)
-    kept = [(a, _sweep(a, times)) for a in scenario.actors]
+def _candidates(scenario: Scenario) -> tuple[list[tuple[str, float, bool]], list[tuple[str, float, bool]]]:
+    """Places for a background vehicle, ``(lane, arc length, moving)`` every
+    ``BACKGROUND_SPACING_M`` along each lane outside the intersection boxes: those within
+    R/2 of the nearest junction, and those further out (along the arms toward the map's
+    edge). A vehicle moves if its lane leads away from that junction or, on a map of
+    several domains, goes on through it (no light, or a green one); else it waits."""
+    m = scenario.roadmap
     centers = m.domain_centers()
     network = len(centers) > 1  # several domains: the main road's traffic drives on through the junctions
-    candidates = []
+    near, far = [], []
     for lane_id, lane in m.lanes.items():
         if ">" in lane_id:
             continue  # no one waits inside the intersection box
@@ -623,30 +641,58 @@ def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
         for s in np.arange(6.0, cum[-1] - 6.0, BACKGROUND_SPACING_M):
             xy, yaw = point_at(lane.centerline, s)
             rel = xy - centers[np.argmin(np.hypot(*(xy - centers).T))] if network else xy - m.center
-            if np.linalg.norm(rel) > DOMAIN_RADIUS_M:
-                continue
             away = float(rel @ np.array([np.cos(yaw), np.sin(yaw)])) > 0
             light = m.lanes[lane_id].light_id
             through = network and lane_id in m.straight_on and (light < 0 or scenario.lights.get(light) == "green")
             moving = (away or through) and not lane_id.startswith("P_")
-            candidates.append((lane_id, float(s), moving))
-    order = rng.permutation(len(candidates))
-    kinds = rng.random(len(candidates)) < TRUCK_SHARE
+            if np.linalg.norm(rel) <= DOMAIN_RADIUS_M:
+                near.append((lane_id, float(s), moving))
+            else:
+                far.append((lane_id, float(s), False))
+    return near, far
+
+
+def _add_background(scenario: Scenario, rng: np.random.Generator) -> None:
+    """Fill the connected vids after the events' egos and occluders with background, in a
+    seeded order: the places within R/2 of a junction first, then (only if those do not
+    hold enough) the places further out, so a run that fits near the junctions is placed
+    as if there were no others. A place is skipped if the vehicle would come near a kept
+    one within the run, or join a domain that already has ``MAX_VEHICLES_PER_DOMAIN``
+    members at t = 0."""
+    from vehicle_agent.domains import DomainTable  # the agents' membership rule
+
+    p, m = scenario.params, scenario.roadmap
+    n_needed = p.vehicles - sum(a.connected for a in scenario.actors)
+    times = np.arange(0.0, p.duration_s + 1e-9, 0.25)
+    kept = [(a, _sweep(a, times)) for a in scenario.actors]
+    table = DomainTable.of(m.to_msg())
+    members = np.zeros(len(table), dtype=np.int64)
+    for a in scenario.connected():
+        members[list(table.membership(*a.route[0]))] += 1
     first = vid = p.vehicles - n_needed  # after the events' egos and occluders
-    for idx in order:
+    for candidates in _candidates(scenario):
+        order = rng.permutation(len(candidates))
+        kinds = rng.random(len(candidates)) < TRUCK_SHARE
+        for idx in order:
+            if vid - first >= n_needed:
+                break
+            lane_id, s, moving = candidates[idx]
+            kind = "truck" if kinds[idx] else "car"
+            route = _trim(m.through_route(lane_id), s)
+            domains = list(table.membership(*route[0]))
+            if (members[domains] >= MAX_VEHICLES_PER_DOMAIN).any():
+                continue
+            cand = Actor(vid, "background", kind, route, BACKGROUND_SPEED_MPS if moving else 0.0, True)
+            sweep = _sweep(cand, times)
+            r = cand.spec.width_m / 2
+            if any(_clash(sweep, r, other, o.spec.width_m / 2, 0.8) for o, other in kept):
+                continue
+            kept.append((cand, sweep))
+            scenario.actors.append(cand)
+            members[domains] += 1
+            vid += 1
         if vid - first >= n_needed:
             break
-        lane_id, s, moving = candidates[idx]
-        kind = "truck" if kinds[idx] else "car"
-        route = _trim(m.through_route(lane_id), s)
-        cand = Actor(vid, "background", kind, route, BACKGROUND_SPEED_MPS if moving else 0.0, True)
-        sweep = _sweep(cand, times)
-        r = cand.spec.width_m / 2
-        if any(_clash(sweep, r, other, o.spec.width_m / 2, 0.8) for o, other in kept):
-            continue
-        kept.append((cand, sweep))
-        scenario.actors.append(cand)
-        vid += 1
     if vid - first < n_needed:
         raise ScenarioError(f"vehicles: only {vid} connected vehicles fit the {p.scenario} scene, "
                             f"asked for {p.vehicles}")

@@ -107,7 +107,9 @@ def build_parser(prog: str = "autocast run", description: str | None = __doc__,
     sc = ap.add_argument_group("scenario (python -m world_server --help)")
     sc.add_argument("--scenario", default="left_turn", help="overtaking | left_turn | red_light (default left_turn); "
                     "corridor3 | grid4 | corridor3x | grid4_handover: several junctions (docs/domains.md)")
-    sc.add_argument("--vehicles", default="10", help="connected vehicles in range, ego included (default 10)")
+    sc.add_argument("--vehicles", default="10",
+                    help="connected vehicles in range, ego included (default 10; at most 64 a scheduler domain "
+                    "of the map)")
     sc.add_argument("--collider-speed", default="30", metavar="KMH", help="the collider's speed (default 30)")
     sc.add_argument("--delta", default="0", metavar="SECONDS",
                     help="collider reaches the conflict point this long after the ego (default 0)")

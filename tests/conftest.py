@@ -53,7 +53,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
         failure = "no end in 900 s"
     if cold and not failure:
         kept = Path(tempfile.mkdtemp(prefix="autocast-warmed-"))
-        _copy_as_cache_dir(cached_kernels(), kept)
+        copy_as_cache_dir(cached_kernels(), kept)
         (kept / "warm-up.log").write_text(done.stderr)
         os.environ["AUTOCAST_WARMED_CACHE"] = str(kept)  # the workers inherit it
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
@@ -71,7 +71,7 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
         shutil.rmtree(kept, ignore_errors=True)
 
 
-def _copy_as_cache_dir(kernels: list, dest: Path) -> None:
+def copy_as_cache_dir(kernels: list, dest: Path) -> None:
     """The kernels' cache files (index and compiled signatures) as they would lie under
     ``NUMBA_CACHE_DIR=dest``: the same file names, in numba's directory for each source
     file instead of the source's ``__pycache__``."""

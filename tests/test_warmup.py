@@ -15,8 +15,8 @@ import pytest
 from numba.core.dispatcher import Dispatcher
 
 from channel_proxy.emp import voronoi_segment
+from conftest import copy_as_cache_dir
 from channel_proxy.profiles import get_profile
-from deploy.launch.warmup import WARM_ARGV
 from protocol.codec import decode, encode
 from protocol.messages import ControlMsg, Scan
 from vehicle_agent.agent import Agent
@@ -93,23 +93,26 @@ def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
     and sharing scheme then load. A kernel it misses compiles inside a tick instead, in
     every agent at once; on CI one such compile outlasted a test's safety net.
 
-    The suite's own first step is that warm-up when it starts from an empty cache; its
-    files are then kept apart (``AUTOCAST_WARMED_CACHE``, tests/conftest.py) and the runs
-    here start from a copy of them. From a warm cache the warm-up compiles here, into an
-    empty cache of its own (a minute or two of one worker)."""
+    The suite's first step is that warm-up; when it started from an empty cache, its
+    files are kept apart (``AUTOCAST_WARMED_CACHE``, tests/conftest.py) and the runs here
+    start from a copy of them. From a warm cache (a developer's machine) the runs start
+    from a copy of the whole cache instead: they must compile nothing, but a kernel the
+    warm-up misses and an earlier run compiled is not caught there, only from an empty
+    cache (``NUMBA_CACHE_DIR=<empty dir> python -m pytest tests/test_warmup.py``)."""
+    from deploy.launch.warmup import cached_kernels
+
     cache = tmp_path / "numba"
     warmed = os.environ.get("AUTOCAST_WARMED_CACHE")
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
     if warmed:
         shutil.copytree(warmed, cache, ignore=shutil.ignore_patterns("warm-up.log"))
         said = (Path(warmed) / "warm-up.log").read_text().splitlines()
+        # what a first run shows while it compiles: how many, and when it is done
+        assert any(line.startswith("compiling ") and "numba kernels on" in line for line in said), said[-20:]
+        assert any(line.startswith("compiled ") and "later runs load them from the cache" in line
+                   for line in said), said[-20:]
     else:
-        said = subprocess.run(WARM_ARGV, env=env, check=True, capture_output=True, text=True,
-                              timeout=900).stderr.splitlines()
-    # what a first run shows while it compiles: how many, and when it is done
-    assert any(line.startswith("compiling ") and "numba kernels on" in line for line in said), said[-20:]
-    assert any(line.startswith("compiled ") and "later runs load them from the cache" in line for line in said), \
-        said[-20:]
+        copy_as_cache_dir(cached_kernels(), cache)
     cached = {p.name for p in cache.rglob("*.nbc")}
     assert cached, "the warm-up wrote no numba cache"
     for scenario, scheme in (("overtaking", "autocast"), ("left_turn", "emp")):

@@ -118,11 +118,13 @@ def test_only_scenarios_of_several_domains_get_the_network_tables():
 
 def domains_run(domains: dict[str, tuple[int, list[int], list[int], int, int, int, int]]) -> dict:
     """A run's ``domain_stats.run_summary``: domain -> (channel, members and bytes on the
-    air per interval, joined, left, transmissions, collided); capacity 90,000 bytes."""
+    air per interval, joined, left, transmissions, collided[, control messages sent,
+    dropped]); capacity 90,000 bytes."""
     return {"intervals": 3, "capacity_bytes": 90_000, "in_two": 0,
             "domains": {d: {"channel": c, "members": m, "offered_bytes": b, "joined": j, "left": lf,
-                            "transmissions": tx, "collided": col, "delivered_bytes": 0}
-                        for d, (c, m, b, j, lf, tx, col) in domains.items()}}
+                            "transmissions": tx, "collided": col, "delivered_bytes": 0,
+                            **({"ctrl_sent": ctrl[0], "ctrl_dropped": ctrl[1]} if ctrl else {})}
+                        for d, (c, m, b, j, lf, tx, col, *ctrl) in domains.items()}}
 
 
 def tally(ticks: int, visible: int, points: int) -> dict:
@@ -136,9 +138,9 @@ def event(crossings: int, around: dict, away: dict) -> dict:
 
 
 def test_domain_cells_pool_the_runs_intervals():
-    a = domains_run({"0": (0, [2, 3, 3], [9_000, 45_000, 0], 1, 0, 10, 2),
-                     "1": (1, [1, 1, 0], [90_000, 0, 0], 0, 1, 4, 0)})
-    b = domains_run({"0": (0, [4, 4], [18_000, 18_000], 3, 2, 30, 4)})
+    a = domains_run({"0": (0, [2, 3, 3], [9_000, 45_000, 0], 1, 0, 10, 2, 8, 1),
+                     "1": (1, [1, 1, 0], [90_000, 0, 0], 0, 1, 4, 0)})  # read before control drops were counted
+    b = domains_run({"0": (0, [4, 4], [18_000, 18_000], 3, 2, 30, 4, 8, 0)})
     pairs = [(record(r, "autocast", 20, 0.8, scenario="corridor3"), {"domains": d, "handover": []})
              for r, d in (("a", a), ("b", b))]
     pairs.append((record("s", "single", 20, 0.2, scenario="corridor3"), {"domains": None, "handover": []}))
@@ -151,9 +153,10 @@ def test_domain_cells_pool_the_runs_intervals():
     assert c.load_median == pytest.approx(0.2) and c.load_max == pytest.approx(0.5)
     md = report.domain_table_md(cells)
     assert md[0] == ("| scenario | scheme | vehicles | domain | channel | runs | members per interval, median (max) | "
-                     "joined per run | left per run | load per interval, median (max) | collided (of transmissions) |")
-    assert "| corridor3 | autocast | 20 | 0 | 0 | 2 | 3 (4) | 2.0 | 1.0 | 0.20 (0.50) | 15% (6/40) |" in md
-    assert "| corridor3 | autocast | 20 | 1 | 1 | 1 | 1 (1) | 0.0 | 1.0 | 0.00 (1.00) | 0% (0/4) |" in md
+                     "joined per run | left per run | load per interval, median (max) | collided (of transmissions) | "
+                     "control dropped (of sent) |")
+    assert "| corridor3 | autocast | 20 | 0 | 0 | 2 | 3 (4) | 2.0 | 1.0 | 0.20 (0.50) | 15% (6/40) | 6% (1/16) |" in md
+    assert "| corridor3 | autocast | 20 | 1 | 1 | 1 | 1 (1) | 0.0 | 1.0 | 0.00 (1.00) | 0% (0/4) | - |" in md
 
 
 def test_handover_cells_pool_the_ticks_around_and_away():

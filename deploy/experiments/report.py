@@ -60,7 +60,7 @@ FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "
 NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
 DEFAULT_MODEL = "ours"  # a record without a "model" field
 LOAD_CACHE_VERSION = 1  # bump when deploy.experiments.load's figures change meaning
-NETWORK_CACHE_VERSION = 1  # ... when domain_stats' run summary or the handover figures do
+NETWORK_CACHE_VERSION = 2  # ... when domain_stats' run summary or the handover figures do
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
 
@@ -500,6 +500,8 @@ class DomainCell:
     load_max: float
     transmissions: int
     collided: int
+    ctrl_sent: int | None = None  # control messages sent in the domain; None: a run's figures lack them
+    ctrl_dropped: int | None = None  # ... that its channel's control pool had no room for
 
 
 def domain_cells(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]
@@ -519,8 +521,17 @@ def domain_cells(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]
         out[k] = DomainCell(len(g), g[0][0]["channel"], len(members), float(np.median(members)), int(members.max()),
                             statistics.fmean(ds["joined"] for ds, _ in g),
                             statistics.fmean(ds["left"] for ds, _ in g), float(np.median(load)), float(load.max()),
-                            sum(ds["transmissions"] for ds, _ in g), sum(ds["collided"] for ds, _ in g))
+                            sum(ds["transmissions"] for ds, _ in g), sum(ds["collided"] for ds, _ in g),
+                            *_ctrl_counts([ds for ds, _ in g]))
     return out
+
+
+def _ctrl_counts(summaries: list[dict[str, Any]]) -> tuple[int | None, int | None]:
+    """The domain's control messages sent and dropped over the runs; (None, None) if a
+    run's summary lacks them (one made before ``domain_stats`` counted them)."""
+    if not all("ctrl_sent" in ds and "ctrl_dropped" in ds for ds in summaries):
+        return None, None
+    return sum(ds["ctrl_sent"] for ds in summaries), sum(ds["ctrl_dropped"] for ds in summaries)
 
 
 def domain_table_md(cells: dict[tuple[str, str, str, int, int], DomainCell]) -> list[str]:
@@ -532,10 +543,12 @@ def domain_table_md(cells: dict[tuple[str, str, str, int, int], DomainCell]) -> 
         rows.append([*([m] if several else []), sc, s, n, d, c.channel, c.runs,
                      f"{c.members_median:g} ({c.members_max})", f"{c.joined_per_run:.1f}", f"{c.left_per_run:.1f}",
                      f"{c.load_median:.2f} ({c.load_max:.2f})",
-                     _pct(c.collided, c.transmissions)])
+                     _pct(c.collided, c.transmissions),
+                     "-" if c.ctrl_sent is None else _pct(c.ctrl_dropped, c.ctrl_sent)])
     return _md([*(["model"] if several else []), "scenario", "scheme", "vehicles", "domain", "channel", "runs",
                 "members per interval, median (max)", "joined per run", "left per run",
-                "load per interval, median (max)", "collided (of transmissions)"], rows)
+                "load per interval, median (max)", "collided (of transmissions)",
+                "control dropped (of sent)"], rows)
 
 
 @dataclass(frozen=True, slots=True)

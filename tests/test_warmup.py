@@ -86,6 +86,29 @@ def test_a_real_interval_after_the_warm_up_adds_no_kernel_signature():
     assert not grown, f"kernels compiled or loaded at the first real tick (before, after): {grown}"
 
 
+def test_an_agent_drives_its_first_ticks_as_if_it_had_never_been_warmed_up():
+    """The warm-up's synthetic interval (a car ahead, a neighbour, a shared object) leaves
+    nothing behind: the ego of grid4_handover, 60 vehicles, seed 3 (an oncoming car 23 m
+    ahead in the next lane), warmed up and not, plans the same path and sends the same
+    command in each of its first three ticks. Warmed in place, its planner kept the path
+    round the synthetic obstacle, a swerve toward the centre line 10 m ahead."""
+    sim = Simulation(ScenarioParams(scenario="grid4_handover", vehicles=60, delta_s=0.0, seed=3))
+    mapmsg = sim.scenario.roadmap.to_msg()
+    agreement = AgreementConfig.from_profile(get_profile("lte-direct"), scheduler="autocast")
+    warmed, cold = Agent(sim.mission(0), mapmsg), Agent(sim.mission(0), mapmsg)
+    warm_up(warmed, agreement)
+    for _ in range(3):
+        view = sim.sense([0])[0]
+        scan = decode(encode(Scan(sim.tick, sim.t_sim_s, 0, view.pose, view.speed_mps, view.range_cm)), Scan)
+        commands = []
+        for agent in (warmed, cold):
+            seen = agent.perceive(scan)
+            commands.append(agent.drive(seen, agent.fuse(seen, []), scan))
+        assert encode(commands[0]) == encode(commands[1]), sim.tick
+        np.testing.assert_array_equal(warmed.last_plan.path, cold.last_plan.path)
+        sim.step({0: (commands[1].accel_mps2, commands[1].steer_rad)})  # the others' agents are not run: they brake
+
+
 @pytest.mark.heavy
 def test_the_launchers_warm_up_leaves_no_kernel_for_a_run_to_compile(tmp_path):
     """From an empty numba cache (a fresh clone, CI): ``warm_numba_caches``, what the

@@ -29,7 +29,6 @@ A window without a crossing has no "around" ticks; its ticks are all "away".
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
@@ -179,13 +178,11 @@ def _pct(x: float | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.experiments.handover", description=__doc__.splitlines()[0])
-    ap.add_argument("mcap", type=Path, help="a run's run.mcap")
-    ap.add_argument("--json", action="store_true", help="print every event's figures as JSON")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level="INFO", format="deploy.experiments.handover: %(message)s")
-    if not args.mcap.is_file():
-        print(f"error: mcap: {args.mcap} is not a file", file=sys.stderr)
+    from deploy.experiments.load import mcap_args
+
+    args = mcap_args("deploy.experiments.handover", __doc__.splitlines()[0], "print every event's figures as JSON",
+                     argv)
+    if args is None:
         return 2
     costs = run_costs(args.mcap)
     if args.json:

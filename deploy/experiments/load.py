@@ -298,14 +298,24 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deploy.experiments.load", description=__doc__.splitlines()[0])
+def mcap_args(module: str, description: str, json_help: str, argv: list[str] | None) -> argparse.Namespace | None:
+    """The command line of a ``python -m deploy.experiments.<module> RUN.mcap [--json]``
+    reader, its log set up; None (the error printed) if the MCAP is not a file."""
+    ap = argparse.ArgumentParser(prog=f"python -m {module}", description=description)
     ap.add_argument("mcap", type=Path, help="a run's run.mcap")
-    ap.add_argument("--json", action="store_true", help="print the summary and every interval as one JSON object")
+    ap.add_argument("--json", action="store_true", help=json_help)
     args = ap.parse_args(argv)
-    logging.basicConfig(level="INFO", format="deploy.experiments.load: %(message)s")
+    logging.basicConfig(level="INFO", format=f"{module}: %(message)s")
     if not args.mcap.is_file():
         print(f"error: mcap: {args.mcap} is not a file", file=sys.stderr)
+        return None
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = mcap_args("deploy.experiments.load", __doc__.splitlines()[0],
+                     "print the summary and every interval as one JSON object", argv)
+    if args is None:
         return 2
     t0 = time.perf_counter()
     rows = interval_load(args.mcap)

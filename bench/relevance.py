@@ -42,6 +42,7 @@ class ColliderRelevance:
 def collider_relevance(mcap_path: Path) -> ColliderRelevance:
     from mcap.reader import make_reader
 
+    from protocol import keys
     from protocol.codec import decode
     from protocol.messages import ControlMsg, DataBundle, WorldTruth
 
@@ -52,8 +53,9 @@ def collider_relevance(mcap_path: Path) -> ColliderRelevance:
         reader = make_reader(f)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
         collider = int(meta["autocast"]["vehicles"])  # the passive collider's vid
-        topics = [ch.topic for ch in reader.get_summary().channels.values()
-                  if "/net/ctrl/tx/" in ch.topic or ch.topic.endswith(("/world/truth", "/net/data/rx"))]
+        topics = [ch.topic for ch in reader.get_summary().channels.values()  # every domain's
+                  if keys.net_part(ch.topic).startswith("ctrl/tx/") or keys.net_part(ch.topic) == "data/rx"
+                  or ch.topic.endswith("/world/truth")]
         for _, _, message in reader.iter_messages(topics=topics):
             try:
                 msg = decode(message.data)

@@ -113,6 +113,18 @@ def channel_domain_of(key: str) -> tuple[int, int]:
     return 0, 0
 
 
+def net_part(key: str) -> str:
+    """What a ``net`` key names below its channel and domain, alike in every domain:
+    ``ctrl/tx/3``, ``data/rx``, ``stats``, ``emp/up/4``; "" for a key outside ``net``."""
+    parts = str(key).split("/")
+    if "net" not in parts:
+        return ""
+    rest = parts[parts.index("net") + 1:]
+    if channel_domain_of(key) != (0, 0) or rest[:2] == ["c0", "d0"]:
+        rest = rest[2:]
+    return "/".join(rest)
+
+
 def net_stats(run: str) -> str:
     return f"{_run(run)}/net/stats"
 

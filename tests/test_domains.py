@@ -63,6 +63,9 @@ def test_domain_keys_keep_the_plain_keys_for_domain_zero_on_channel_zero():
     assert keys.channel_domain_of(keys.net_data_tx("r", 4, 1, 2)) == (1, 2)
     assert keys.channel_domain_of(keys.net_data_tx("r", 4)) == (0, 0)
     assert keys.vid_of(keys.net_ctrl_tx("r", 7, 1, 1)) == 7
+    assert keys.net_part(keys.net_ctrl_tx("r", 7, 1, 1)) == keys.net_part(keys.net_ctrl_tx("r", 7)) == "ctrl/tx/7"
+    assert keys.net_part(keys.net_data_rx("r", 0, 2)) == "data/rx" and keys.net_part(keys.net_stats("r")) == "stats"
+    assert keys.net_part(keys.report("r", 3)) == ""
     with pytest.raises(ValueError):
         keys.net_ctrl_tx("r", 1, -1, 0)
 

@@ -104,6 +104,35 @@ def test_each_interval_by_hand(tmp_path):
     assert [r.collider_to_ego for r in rows] == [True, False, False]
 
 
+def test_every_domain_counts_and_the_ego_hears_the_collider_in_another_than_domain_0(tmp_path):
+    """The same three intervals on a map of two domains: vehicle 1, the collider's sender,
+    is in domain 1 on channel 1, the others in domain 0, and each domain's data bundle
+    holds its own receptions, domain 1's first. The load is over two domains' capacity
+    (72 kB over 180 kB), and the ego's copy of the collider in tick 0 is in domain 1's
+    bundle, not in domain 0's that follows it."""
+    split = {0: ([(1, 7)], [[True], [False], [True]], [(2, 5)], [[True], [True], [False]]),
+             1: ([(1, 7), (1, 8)], [[False, True], [False, False], [True, True]], [], []),
+             2: ([(1, 7)], [[True], [False], [True]], [], [])}
+    messages: list[tuple[str, object]] = []
+    for key, msg in three_intervals():
+        if key == keys.net_ctrl_tx(RUN, 1):
+            key = keys.net_ctrl_tx(RUN, 1, 1, 1)
+        if key == keys.net_data_rx(RUN):
+            rx1, dec1, rx0, dec0 = split[msg.tick]
+            messages += [(keys.net_data_rx(RUN, 1, 1), bundle(msg.tick, rx1, dec1)),
+                         (key, bundle(msg.tick, rx0, dec0))]
+            continue
+        messages.append((key, msg))
+    path = tmp_path / "run.mcap"
+    write(path, messages)
+    rows = load.interval_load(path)
+    assert [r.bytes_offered for r in rows] == [72_000, 108_000, 72_000]
+    assert {r.capacity_bytes for r in rows} == {180_000}
+    assert [r.load for r in rows] == pytest.approx([0.4, 0.6, 0.4])
+    assert [r.collider_offered for r in rows] == [True, True, False]
+    assert [r.collider_to_ego for r in rows] == [True, False, False]
+
+
 def test_the_summary_of_those_intervals(tmp_path):
     path = tmp_path / "run.mcap"
     write(path, three_intervals())

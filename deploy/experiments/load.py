@@ -8,11 +8,15 @@ For interval (tick) k of a V2V run:
 
 - **objects offered**: the objects of every sender's control message of tick k
   (``net/ctrl/tx/<vid>``, ``ControlMsg.objects``), the ego's included: the scheduler's
-  candidate pool. One vehicle seen by several senders counts once per sender.
+  candidate pool. One vehicle seen by several senders counts once per sender; on a map
+  of several scheduler domains, every domain's control messages count
+  (``net/c<channel>/d<domain>/ctrl/tx/<vid>``), a sender in two domains once in each.
   **Wanted**: those some receiver would gain from, (1 - v) r > 0 (the reward's terms).
 - **bytes offered**: the sum of their ``size_bytes``; **load** = bytes offered over the
   data channel's capacity in an interval, B x N x T_n / 8 of the run's channel profile
-  (``lte-direct``: 7.2 Mbps x 10 x 10 ms / 8 = 90,000 bytes).
+  (``lte-direct``: 7.2 Mbps x 10 x 10 ms / 8 = 90,000 bytes), times the number of
+  domains with a control message in the run (each domain's schedule fills its own
+  interval; ``python -m channel_proxy.domain_stats`` gives each domain's load alone).
 - **share sent**: what the senders put on the air in interval k (the proxy's
   ``net/stats``, ``stats["data"]["offered_bytes"]``; a repeated copy counts again) over
   the bytes offered; NaN when nothing was offered.
@@ -20,7 +24,8 @@ For interval (tick) k of a V2V run:
   the object of its map whose centroid is nearest the collider's true position
   (``world/truth`` at tick k), if within ``MATCH_M`` (3 m), as ``bench.relevance`` matches.
 - **collider to the ego**: the ego decoded (``DataBundle.decoded[ego row]`` on
-  ``net/data/rx``) a reception of tick k that is such an object (sender and object id).
+  ``net/data/rx``, in any domain) a reception of tick k that is such an object (sender
+  and object id).
 
 The ego is the vehicle whose ``Mission`` says role "ego" (vid 0 when none is recorded; of
 a scenario of several events, the first event's: the lowest such vid); the collider's vid
@@ -137,6 +142,7 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
     """One row per decision interval of the run (its ``world/tick`` ticks), by tick; empty
     for a run without a channel (``single``, ``lane``). Messages this build cannot read
     are left out and counted in a warning."""
+    from protocol import keys
     from protocol.codec import decode
     from protocol.messages import ChannelStats, DataBundle, EmpBundle, EmpUpload, Mission, Tick, WorldTruth
 
@@ -155,16 +161,19 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
     emp_up: dict[int, list[tuple[int, np.ndarray]]] = defaultdict(list)  # tick -> (uploader, points xy)
     emp_down: dict[int, list[tuple[int, int, np.ndarray]]] = defaultdict(list)  # tick -> (receiver, sender, xy)
     unread: list[tuple[str, Exception]] = []
+    domains: set[tuple[int, int]] = set()  # the (channel, domain) pairs with a control message
     has_channel = False
 
     def keep(topic: str) -> bool:
-        return (any(part in topic for part in ("/net/ctrl/tx/", "/net/emp/up/", "/net/emp/down/"))
-                or topic.endswith(("/net/data/rx", "/net/stats", "/world/tick", "/world/truth", "/mission")))
+        part = keys.net_part(topic)
+        return (part.startswith(("ctrl/tx/", "emp/up/", "emp/down/")) or part in ("data/rx", "stats")
+                or topic.endswith(("/world/tick", "/world/truth", "/mission")))
 
     for topic, payload in raw_messages(mcap_path, keep):
         try:
-            if "/net/ctrl/tx/" in topic:
+            if keys.net_part(topic).startswith("ctrl/tx/"):
                 has_channel = True
+                domains.add(keys.channel_domain_of(topic))
                 tick, vid, o = _control_objects(payload)
                 n = len(o.object_id)
                 if n:
@@ -195,7 +204,7 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
                 sent[msg.tick] = int(data.get("offered_bytes") or 0)
         elif isinstance(msg, DataBundle):
             has_channel = True
-            ego_rx[msg.tick] = [(int(r.sender), int(r.object_id)) for r in msg.received_by(ego) or []]
+            ego_rx[msg.tick] += [(int(r.sender), int(r.object_id)) for r in msg.received_by(ego) or []]
         elif isinstance(msg, EmpUpload):
             has_channel = True
             emp_up[msg.tick].append((msg.vid, msg.points_world[:, :2]))
@@ -207,7 +216,7 @@ def interval_load(mcap_path: Path) -> list[IntervalLoad]:
     if not has_channel:
         return []
     emp = bool(emp_up or emp_down)
-    capacity = capacity_bytes(profile)
+    capacity = capacity_bytes(profile) * max(1, len(domains))  # each domain's schedule fills its own interval
     ticks = ticks or set(offered) | set(sent) | set(ego_rx) | set(emp_up) | set(emp_down)
     rows = []
     for k in sorted(ticks):

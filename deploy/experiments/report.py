@@ -59,7 +59,7 @@ FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "
            "scheduled_delay.png", "load_vs_density.png")
 NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
 DEFAULT_MODEL = "ours"  # a record without a "model" field
-LOAD_CACHE_VERSION = 1  # bump when deploy.experiments.load's figures change meaning
+LOAD_CACHE_VERSION = 2  # bump when deploy.experiments.load's figures change meaning
 NETWORK_CACHE_VERSION = 2  # ... when domain_stats' run summary or the handover figures do
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
@@ -180,6 +180,7 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     Control messages this build cannot read (a log of an earlier message version, say)
     leave their objects out, and the run's count of them is logged as a warning."""
     from deploy.experiments.load import raw_messages
+    from protocol import keys
     from protocol.codec import decode
     from protocol.messages import ChannelStats, ControlMsg
     from protocol.security import opened
@@ -187,18 +188,21 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     offers: dict[tuple[int, int], dict[int, tuple[float, int]]] = {}
     played: dict[tuple[int, int, int], list[float]] = {}
     unread: list[Exception] = []
-    for topic, payload in raw_messages(mcap_path, lambda t: "/net/ctrl/tx/" in t or t.endswith("/net/stats")):
+    def keep(topic: str) -> bool:  # every domain's control messages, the proxy's statistics
+        return keys.net_part(topic).startswith("ctrl/tx/") or keys.net_part(topic) == "stats"
+
+    for topic, payload in raw_messages(mcap_path, keep):
         try:
             msg = opened(decode(payload))  # a signed control message: its body
         except Exception as exc:  # a malformed payload the recorder kept; the rest still counts
-            if "/net/ctrl/tx/" in topic:
+            if keys.net_part(topic).startswith("ctrl/tx/"):
                 unread.append(exc)
             continue
         if isinstance(msg, ControlMsg):
             o = msg.objects
             reward = ((1.0 - o.visibility.astype(np.float64)) * o.relevance).sum(axis=1) if len(o.object_id) else []
-            offers[(msg.tick, msg.vid)] = {int(k): (float(h), int(s))
-                                           for k, h, s in zip(o.object_id, reward, o.size_bytes)}
+            offers.setdefault((msg.tick, msg.vid), {}).update(  # a sender in two domains: both offers
+                {int(k): (float(h), int(s)) for k, h, s in zip(o.object_id, reward, o.size_bytes)})
         elif isinstance(msg, ChannelStats):
             for sender, oid, _start_s, rx_s, *_ in (msg.stats.get("data") or {}).get("objects", []):
                 played.setdefault((msg.tick, int(sender), int(oid)), []).append(float(rx_s))

@@ -79,6 +79,12 @@ class RoadMap:
             chain.append(self.straight_on[chain[-1]])
         return self.route(*chain)
 
+    def lead_in(self, lane_id: str) -> str:
+        """The lane that goes straight on into ``lane_id`` without crossing a junction's box
+        (on a network map, the first half of the segment from the neighbouring junction),
+        else ``lane_id`` itself (an arm at the map's edge)."""
+        return next((a for a, b in self.straight_on.items() if b == lane_id and ">" not in a), lane_id)
+
 
 def _f64(a, columns: int) -> np.ndarray:
     return np.asarray(a, dtype=np.float64).reshape(-1, columns)

@@ -471,13 +471,14 @@ def _left_turn(p: ScenarioParams) -> Scenario:
 def red_light_event(p: ScenarioParams, m: RoadMap, ego_arm: str, prefix: str = "") -> tuple[list[Actor], np.ndarray]:
     """The red-light event at a junction (lane ids ``prefix`` + ...): the ego goes straight
     on from ``ego_arm`` in its outer lane; the collider runs the red from the ego's left in
-    that approach's outer lane and drives on straight ahead (``through_route``), hidden by
+    that approach's outer lane (from the segment's start on a network map: ``lead_in``)
+    and drives on straight ahead (``through_route``), hidden by
     the connected truck waiting to turn left in the ego's left lane and the row of parked
     trucks behind it. Returns the actors and the conflict point."""
     a, left = ego_arm, LEFT_OF[ego_arm]
     ego, collider, conflict = crossing_actors(
         p, m, m.route(f"{prefix}{a}.in.1", f"{prefix}{a}.in.1>{OPPOSITE[a]}", f"{prefix}{OPPOSITE[a]}.out.1"),
-        m.through_route(f"{prefix}{left}.in.1"), RED_LIGHT_EGO_KMH)
+        m.through_route(m.lead_in(f"{prefix}{left}.in.1")), RED_LIGHT_EGO_KMH)
     truck_route = m.route(f"{prefix}{a}.in.0", f"{prefix}{a}.in.0>{left}", f"{prefix}{left}.out.0")
     stop = m.lanes[f"{prefix}{a}.in.0"].stop_s_m
     truck = waiting_truck(truck_route, stop + RED_LIGHT_TRUCK_INTO_BOX_M)
@@ -565,14 +566,16 @@ def _corridor3(p: ScenarioParams) -> Scenario:
 def _corridor3x(p: ScenarioParams) -> Scenario:
     """Two of the paper's events on one corridor of three, each judged on its own:
     ``left_turn`` at ``J1`` as in ``corridor3`` (ego 0, truck 1, collider ``p.vehicles``)
-    and ``red_light`` at ``J0`` (ego 2 going north from ``J0:S``, truck 3, the collider
-    running the red from ``J0:W`` and on along the main road). Lights: north-south green at
-    ``J0`` (the red-light ego's) and ``J1`` (the left turn's), the main road green at
-    ``J2``. The run lasts until both are judged, at most 40 s (red_light's limit; the left
-    turn's window closes at 30 s)."""
+    and ``red_light`` at ``J0`` (ego 2 going south from ``J0:N``, truck 3, the collider
+    running the red from the ego's left, ``J0:E``, the segment from ``J1``, and on west
+    off the map: a runner that obeys no light meets no other junction, where it would
+    run that red too, into the left turn's ego waiting in ``J1``'s box). Lights:
+    north-south green at ``J0`` (the red-light ego's) and ``J1`` (the left turn's), the
+    main road green at ``J2``. The run lasts until both are judged, at most 40 s
+    (red_light's limit; the left turn's window closes at 30 s)."""
     m = corridor(3)
     actors, events = several_events(p, [("left_turn", "J1", left_turn_event(p, m, "S", "J1:")),
-                                        ("red_light", "J0", red_light_event(p, m, "S", "J0:"))])
+                                        ("red_light", "J0", red_light_event(p, m, "N", "J0:"))])
     lights = _lights({0: "NS", 1: "NS", 2: "EW"})
     return Scenario(p, m, actors, events[0].conflict_xy, lights, events)
 

@@ -279,6 +279,7 @@ def test_put_parts_sends_what_put_of_the_joined_parts_sends(sessions, tmp_path, 
     sub.undeclare()
     pub.undeclare()
     plain_pub, plain_in = ShmPublisher(a, key, None), Inbox()  # without a directory: joined, plain Zenoh
+    _wait_matching(plain_pub._pub, False)  # zsub's undeclaration has reached a: a match now is plain_sub's
     plain_sub = shm.subscribe(b, key, None, Tick, plain_in.put, drops)
     _wait_matching(plain_pub._pub, True)
     plain_pub.put_parts(0, 0.0, parts(ticks[1]))

@@ -53,9 +53,9 @@ def collider_relevance(mcap_path: Path) -> ColliderRelevance:
         reader = make_reader(f)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
         collider = int(meta["autocast"]["vehicles"])  # the passive collider's vid
-        topics = [ch.topic for ch in reader.get_summary().channels.values()  # every domain's
-                  if keys.net_part(ch.topic).startswith("ctrl/tx/") or keys.net_part(ch.topic) == "data/rx"
-                  or ch.topic.endswith("/world/truth")]
+        parts = {ch.topic: keys.net_part(ch.topic) for ch in reader.get_summary().channels.values()}
+        topics = [t for t, part in parts.items()  # every domain's control messages and data bundles
+                  if part.startswith("ctrl/tx/") or part == "data/rx" or t.endswith("/world/truth")]
         for _, _, message in reader.iter_messages(topics=topics):
             try:
                 msg = decode(message.data)

@@ -189,7 +189,8 @@ def schedule_of_run(mcap_path: Path) -> list[Sent]:
     played: dict[tuple[int, int, int], list[float]] = {}
     unread: list[Exception] = []
     def keep(topic: str) -> bool:  # every domain's control messages, the proxy's statistics
-        return keys.net_part(topic).startswith("ctrl/tx/") or keys.net_part(topic) == "stats"
+        part = keys.net_part(topic)
+        return part.startswith("ctrl/tx/") or part == "stats"
 
     for topic, payload in raw_messages(mcap_path, keep):
         try:

@@ -71,6 +71,7 @@ DURATION_S = 2.5  # sim seconds: 25 ticks
 SLACK_S = 30.0  # beyond --timeout-s before the soak stops a launcher itself (the sweep's LAUNCHER_GRACE_S)
 LEFT_WAIT_S = 20.0  # for a killed launcher's factory to stop its children (SIGINT, 3 s, SIGKILL)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+SOAK_TOKEN = f"{os.getpid():x}"  # in every run id: this soak's; a resumed soak's runs get new ids
 PR_SET_CHILD_SUBREAPER = 36  # prctl(2): orphaned descendants become our children, so we reap them
 
 
@@ -85,8 +86,10 @@ class Plan:
 
     @property
     def run_id(self) -> str:
+        """Unique to this soak: run ids name a run's Zenoh keys and find its processes,
+        so two soaks at once (a test beside a user's soak) must not share one."""
         process = self.fault.split(":")[0]
-        return f"soak{self.index:04d}-{process}-{self.fault.split(':')[1].split('@')[0]}"
+        return f"soak{SOAK_TOKEN}-{self.index:04d}-{process}-{self.fault.split(':')[1].split('@')[0]}"
 
 
 def plan(index: int, seed: int, forced: list[str]) -> Plan:

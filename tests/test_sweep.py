@@ -249,6 +249,9 @@ def test_results_survive_a_torn_line_and_the_last_attempt_wins(tmp_path):
     recs = plan.read_results(path)
     assert [r["run_key"] for r in recs] == ["a", "b", "a"]
     assert {k: r["status"] for k, r in plan.latest(recs).items()} == {"a": "judged", "b": "judged"}
+    # the resumed sweep's first record starts a line of its own, not the torn one's tail
+    plan.append_record(path, {"run_key": "c", "status": "judged"})
+    assert [r["run_key"] for r in plan.read_results(path)] == ["a", "b", "a", "c"]
 
 
 # ---------------------------------------------------------------------------- report tables

@@ -429,9 +429,17 @@ def latest(records: Iterable[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 
 def append_record(path: Path, record: dict[str, Any]) -> None:
-    """One JSON line, on disk before this returns: a crash right after cannot lose it."""
-    with open(path, "a") as f:
-        f.write(json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n")
+    """One JSON line, on disk before this returns: a crash right after cannot lose it.
+    After a torn last line (a writer killed, or a full disk) it starts a line of its own,
+    so the torn line does not take this record with it."""
+    line = json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n"
+    with open(path, "a+b") as f:  # "a": every write goes to the end, wherever it was read
+        end = f.seek(0, os.SEEK_END)
+        if end:
+            f.seek(end - 1)
+            if f.read(1) != b"\n":
+                line = "\n" + line
+        f.write(line.encode())
         f.flush()
         os.fsync(f.fileno())
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -448,6 +449,18 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path):
     assert not leftovers([r["run_id"]])
     assert report.main([str(out)]) == 0
     assert "| left_turn-v2-c30-d0-single-s0-t30 | 3 | no outcome within 1 s" in (out / "report" / "summary.md").read_text()
+
+
+def test_a_nearly_full_disk_starts_no_run_and_the_same_command_resumes(tmp_path):
+    """A floor above the file system's whole size: no machine has that much free."""
+    out = tmp_path / "full"
+    floor_mb = shutil.disk_usage(tmp_path).total / 1e6 + 1
+    res = autocast("sweep", "--preset", "smoke", "--schemes", "single", "--vehicles", "2", "--out", str(out),
+                   "--min-free-mb", f"{floor_mb:.0f}")
+    assert res.returncode == 4, res.stderr
+    assert f"free where the runs write, under --min-free-mb {floor_mb:.0f}" in res.stderr and "run the same command again" in res.stderr
+    assert not (out / "results.jsonl").exists() and not any((out / "runs").iterdir())
+    assert autocast("sweep", "--preset", "smoke", "--out", str(out), "--min-free-mb", "-1").returncode == 2
 
 
 def test_ctrl_c_stops_the_running_run_and_records_nothing(tmp_path):

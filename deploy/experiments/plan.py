@@ -19,6 +19,7 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_DISK_LOW = 4  # stopped starting runs: the disk is nearly full (autocast sweep --min-free-mb)
 RESULTS, PLAN, LOCK = "results.jsonl", "plan.json", "sweep.lock"
 STDERR_TAIL_CHARS = 2000
 BIG_RESULT_CHARS = 1000  # outcome fields longer than this as JSON (the distance series) stay in outcome.json

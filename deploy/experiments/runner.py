@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from deploy.experiments.plan import (EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, RESULTS, STDERR_TAIL_CHARS, RunKey,
+from deploy.experiments.plan import (EXIT_DISK_LOW, EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, RESULTS, STDERR_TAIL_CHARS, RunKey,
                                       SweepSpec, _duration, append_record, latest, read_results, record_of, sweep_cost_s)
 from processes import factory as process_factory
 from processes.manager import has_argument
@@ -135,9 +136,11 @@ class Sweep:
     """Runs the planned keys that are not recorded yet, ``jobs`` at a time within the vehicle budget."""
 
     def __init__(self, spec: SweepSpec, out: Path, jobs: int, vehicle_budget: int,
-                 runs_dir: Path | None = None) -> None:
+                 runs_dir: Path | None = None, min_free_mb: float = 0.0) -> None:
         self.spec, self.out = spec, out
         self.jobs, self.vehicle_budget = jobs, vehicle_budget
+        self.min_free_mb = min_free_mb
+        self.disk_low: str | None = None  # why the sweep stopped starting runs, if the disk filled
         self.runs_dir, self.logs_dir, self.results = runs_dir or out / "runs", out / "logs", out / RESULTS
         self.running: list[Job] = []
         self.model_done_s = self.model_pending_s = 0.0
@@ -164,6 +167,12 @@ class Sweep:
                 self._stop_running()
                 return failed, True
             while pending and self._can_start(pending[0]):
+                if (low := self.disk_low_reason()) is not None:
+                    self.disk_low = low  # the running runs finish; the rest wait for the same command again
+                    log.warning("%s; starting no more runs", low)
+                    pending.clear()
+                    self.model_pending_s = 0.0
+                    break
                 key = pending.popleft()
                 self.model_pending_s -= self._cost(key)
                 self._start(key)
@@ -188,6 +197,14 @@ class Sweep:
         est = [(self._cost(j.key), now - j.t_start) for j in self.running]
         return (self.model_done_s + sum(min(e, age) for e, age in est),
                 self.model_pending_s + sum(max(0.0, e - age) for e, age in est))
+
+    def disk_low_reason(self) -> str | None:
+        """Why no run may start (the outputs' file systems have less than ``min_free_mb``
+        free), or None. A run on a full disk fails and can leave a torn MCAP."""
+        free_mb = min(shutil.disk_usage(d).free for d in (self.runs_dir, self.out)) / 1e6
+        if free_mb >= self.min_free_mb:
+            return None
+        return f"{free_mb:.1f} MB free where the runs write, under --min-free-mb {self.min_free_mb:g}"
 
     def _cost(self, key: RunKey) -> float:
         return sweep_cost_s(key, self.jobs, self.vehicle_budget)
@@ -365,15 +382,20 @@ def git_revision() -> str:
         return "unknown"
 
 
-def finish_sweep(spec: SweepSpec, keys: list[RunKey], out: Path, t0: float, interrupted: bool) -> int:
+def finish_sweep(spec: SweepSpec, keys: list[RunKey], out: Path, t0: float, interrupted: bool,
+                 disk_low: str | None = None) -> int:
     """Log the outcome counts and where the results are; the sweep's exit code."""
     counts = Counter((r["outcome"] or "failed") for r in latest(read_results(out / RESULTS)).values())
     log.info("%s after %s: %s; results %s; report: autocast report %s",
-             "interrupted" if interrupted else "done", _duration(time.monotonic() - t0),
+             "interrupted" if interrupted else "stopped" if disk_low else "done", _duration(time.monotonic() - t0),
              ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "no runs", out / RESULTS, out)
     if interrupted:
         log.info("the same command resumes the sweep")
         return EXIT_INTERRUPTED
+    if disk_low is not None:
+        log.error("stopped: %s; free space (or lower the floor) and run the same command again: it resumes",
+                  disk_low)
+        return EXIT_DISK_LOW
     return _exit_code(spec, keys, out)
 
 

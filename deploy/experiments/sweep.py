@@ -14,7 +14,8 @@ Outputs in the sweep directory: ``plan.json`` (the matrix, settings, estimate),
 ``results.jsonl``, ``runs/<run id>/`` (each run's own outputs, see docs/running.md;
 ``--runs-dir`` puts them elsewhere), ``logs/<run id>.out|.err`` (each launcher's stdout
 and stderr). Exit code: 0 every planned run judged, 1 some run failed (recorded with
-its error), 2 bad input, 3 the cluster's scheduler was lost (``--cluster``), 130
+its error), 2 bad input, 3 the cluster's scheduler was lost (``--cluster``), 4 the
+disk nearly full (``--min-free-mb``: no run started below it, those running finished), 130
 interrupted (Ctrl-C: the running launchers stop their processes; nothing is left).
 With ``--cluster`` each run is a task on a Dask worker instead (``deploy/experiments/cluster.py``).
 """
@@ -83,6 +84,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--jobs", type=int, default=1, help="runs at once (default 1, see docs/experiments.md)")
     ap.add_argument("--vehicle-budget", type=int, default=20,
                     help="with --jobs > 1: connected vehicles of all running runs together (default 20)")
+    ap.add_argument("--min-free-mb", type=float, default=1000.0, metavar="MB",
+                    help="start no run while the runs' file system has less free (default 1000; exit 4, "
+                    "the same command resumes)")
     ap.add_argument("--retry-failed", action="store_true", help="run again the keys whose last record failed")
     ap.add_argument("--runs-dir", type=Path, help="where the runs write their outputs (default <out>/runs; with "
                     "--cluster a directory every worker can reach at the same path)")
@@ -143,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SweepError(f"jobs: {args.jobs} is not >= 1")
         if args.vehicle_budget < 1:
             raise SweepError(f"vehicle_budget: {args.vehicle_budget} is not >= 1")
+        if not args.min_free_mb >= 0:
+            raise SweepError(f"min_free_mb: {args.min_free_mb:g} is not >= 0")
         keys = expand(spec)
         check_scenarios(keys)
     except SweepError as exc:
@@ -173,7 +179,8 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
         print(f"error: out: another sweep is running in {out}", file=sys.stderr)
         return EXIT_BAD_INPUT
     with lock:
-        sweep = Sweep(spec, out, args.jobs, args.vehicle_budget, (args.runs_dir or out / "runs").resolve())
+        sweep = Sweep(spec, out, args.jobs, args.vehicle_budget, (args.runs_dir or out / "runs").resolve(),
+                      args.min_free_mb)
         sweep.runs_dir.mkdir(parents=True, exist_ok=True)
         sweep.logs_dir.mkdir(exist_ok=True)
         plan = {"spec": asdict(spec), "runs": [{"run_key": k.name, **asdict(k)} for k in keys],
@@ -191,6 +198,8 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
 
             return run_on_cluster(sweep, keys, todo, args.cluster)
         t0 = time.monotonic()
+        if (low := sweep.disk_low_reason()) is not None:  # before warming anything
+            return finish_sweep(spec, keys, out, t0, False, low)
         try:
             warm_up(todo[0])
             sweep.warm = True
@@ -206,7 +215,7 @@ def run_sweep(spec: SweepSpec, keys: list[RunKey], todo: list[RunKey], out: Path
                 failed, interrupted = sweep.execute(todo, progress)
         finally:
             progress.close()
-        return finish_sweep(spec, keys, out, t0, interrupted)
+        return finish_sweep(spec, keys, out, t0, interrupted, sweep.disk_low)
 
 
 if __name__ == "__main__":

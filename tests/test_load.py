@@ -149,6 +149,26 @@ def test_the_summary_of_those_intervals(tmp_path):
     json.dumps(s, allow_nan=False)  # plain JSON: what the report caches
 
 
+def test_a_run_whose_mcap_the_sweep_deletes_keeps_its_figures_for_the_report(tmp_path):
+    from deploy.experiments import report, runner
+
+    run_dir = tmp_path / "runs" / RUN
+    run_dir.mkdir(parents=True)
+    write(run_dir / "run.mcap", three_intervals())
+    assert runner.limit_mcap(run_dir, 1.0) == {}  # within the limit: kept, nothing else written
+    assert not (run_dir / load.KEPT).exists()
+    assert runner.limit_mcap(run_dir, 0.0)["mcap"] is None
+    assert not (run_dir / "run.mcap").exists()
+    kept = load.kept_summary(run_dir / load.KEPT)
+    assert (kept["intervals"], kept["collider_offered_intervals"], kept["collider_delivered_intervals"]) == (3, 2, 1)
+    assert kept["load_median"] == pytest.approx(0.8)  # the figures of the summary test above
+    record = {"run_id": RUN, "run_key": RUN, "scheme": "autocast", "vehicles": 3, "status": "judged",
+              "outcome": "safe", "mcap": None, "mcap_deleted_mb": 0.1}
+    assert report.load_of_runs(tmp_path, None, [record], tmp_path / "cache") == ([(record, kept)], [])
+    (run_dir / load.KEPT).write_text(json.dumps({"version": load.SUMMARY_VERSION - 1, "summary": kept}))
+    assert report.load_of_runs(tmp_path, None, [record], tmp_path / "cache") == ([], [record])  # stale: not used
+
+
 def test_capacity_is_the_profiles_interval(tmp_path):
     assert load.capacity_bytes("lte-direct") == 90_000  # 7.2 Mbps x 10 frames x 10 ms / 8
     assert load.capacity_bytes("dsrc") == 75_000  # 6 Mbps x one 100 ms frame / 8

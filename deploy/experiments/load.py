@@ -64,6 +64,8 @@ EGO = 0  # the ego's vid when no mission says which vehicle is the ego
 MIN_POINTS = 5  # EMP: a segment with this many points on the collider carries it (the judge's "visible")
 FOOTPRINT_MARGIN_M = 0.25  # the judge's margin around the collider's body (world_server.judge)
 DEFAULT_PROFILE = "lte-direct"  # the run's default radio, for a log without the metadata
+SUMMARY_VERSION = 2  # bump when these figures change meaning: summaries cached or kept are computed again
+KEPT = "load.json"  # in a run's directory: its summary, kept when a sweep deletes its MCAP for its size
 
 
 @dataclass(frozen=True, slots=True)
@@ -298,6 +300,24 @@ def load_summary(rows: Sequence[IntervalLoad]) -> dict[str, Any]:
         "delivery_offered": delivered_offered / offered if offered else None,
         "delivery_all": delivered / len(rows) if rows else None,
     }
+
+
+def keep_summary(mcap_path: Path, kept: Path) -> None:
+    """Write the run's ``load_summary`` to ``kept`` (``KEPT`` beside the MCAP), so the
+    report has its figures after the sweep deletes an MCAP over ``mcap_limit_mb``."""
+    summary = load_summary(interval_load(mcap_path))
+    tmp = kept.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"version": SUMMARY_VERSION, "summary": summary}, allow_nan=False))
+    tmp.replace(kept)
+
+
+def kept_summary(kept: Path) -> dict[str, Any] | None:
+    """The summary ``keep_summary`` wrote, or None (none there, or from another version)."""
+    try:
+        got = json.loads(kept.read_text())
+        return got["summary"] if got.get("version") == SUMMARY_VERSION else None
+    except (OSError, ValueError, KeyError, AttributeError):
+        return None
 
 
 # ---------------------------------------------------------------------------- CLI

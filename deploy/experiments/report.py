@@ -59,7 +59,6 @@ FIGURES = ("outcomes.png", "safe_vs_density.png", "visibility_vs_density.png", "
            "scheduled_delay.png", "load_vs_density.png")
 NO_CHANNEL = ("single", "lane")  # schemes without a channel proxy: nothing offered, nothing to load
 DEFAULT_MODEL = "ours"  # a record without a "model" field
-LOAD_CACHE_VERSION = 2  # bump when deploy.experiments.load's figures change meaning
 NETWORK_CACHE_VERSION = 2  # ... when domain_stats' run summary or the handover figures do
 PAPER_SAFE = ("Paper (safe passage vs traffic density): Single ~25% at every density; EMP and Agnostic ~60% "
               "on average, falling as density grows; AutoCast 100% up to 20 vehicles, a few near misses at 40.")
@@ -235,13 +234,21 @@ def delay_runs(records: Sequence[dict[str, Any]], vehicles: int | None, per_sche
     return vehicles, {s: rs for s, rs in out.items() if rs}
 
 
-def mcap_of(sweep_dir: Path, plan: dict[str, Any] | None, record: dict[str, Any]) -> Path | None:
-    """A run's MCAP where this machine sees it: under the sweep (``runs/<run id>``), under
-    the plan's ``runs_dir`` (``--runs-dir``, a cluster's shared directory), or where the
-    run wrote it; None if none exists (deleted, or on a worker's own disk)."""
-    candidates = [sweep_dir / "runs" / record["run_id"] / "run.mcap"]
+def run_dirs(sweep_dir: Path, plan: dict[str, Any] | None, record: dict[str, Any]) -> list[Path]:
+    """Where a run's directory may be: under the sweep (``runs/<run id>``), under the
+    plan's ``runs_dir`` (``--runs-dir``, a cluster's shared directory), where the run wrote it."""
+    out = [sweep_dir / "runs" / record["run_id"]]
     if (plan or {}).get("runs_dir"):
-        candidates.append(Path(plan["runs_dir"]) / record["run_id"] / "run.mcap")
+        out.append(Path(plan["runs_dir"]) / record["run_id"])
+    if record.get("run_dir"):
+        out.append(Path(record["run_dir"]))
+    return out
+
+
+def mcap_of(sweep_dir: Path, plan: dict[str, Any] | None, record: dict[str, Any]) -> Path | None:
+    """A run's MCAP where this machine sees it (in one of ``run_dirs``, or where the
+    record says); None if none exists (deleted, or on a worker's own disk)."""
+    candidates = [d / "run.mcap" for d in run_dirs(sweep_dir, plan, record)]
     if record.get("mcap"):
         candidates.append(Path(record["mcap"]))
     return next((c for c in candidates if c.is_file()), None)
@@ -363,7 +370,7 @@ def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
     """``deploy.experiments.load.load_summary`` of a run's MCAP, cached (``cached``)."""
     from deploy.experiments import load
 
-    return cached(mcap, cache, LOAD_CACHE_VERSION, lambda m: load.load_summary(load.interval_load(m)))
+    return cached(mcap, cache, load.SUMMARY_VERSION, lambda m: load.load_summary(load.interval_load(m)))
 
 
 def _per_run(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]],
@@ -392,9 +399,18 @@ def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence
                  ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
     """(record, load summary) of every judged run with a channel whose MCAP is here, and
     the records of those whose MCAP is not (or could not be read)."""
+    from deploy.experiments import load
+
     got, missing = _per_run(sweep_dir, plan, records, lambda r: r["scheme"] not in NO_CHANNEL,
                             lambda mcap, run_id: run_load(mcap, cache_dir / f"{run_id}.json"), "offered load")
-    return [(r, summary) for r, summary in got if summary["intervals"]], missing
+    still = []
+    for r in missing:  # an MCAP the sweep deleted for its size: the summary it kept first
+        kept = next((s for d in run_dirs(sweep_dir, plan, r) if (s := load.kept_summary(d / load.KEPT))), None)
+        if kept is not None:
+            got.append((r, kept))
+        else:
+            still.append(r)
+    return [(r, summary) for r, summary in got if summary["intervals"]], still
 
 
 @dataclass(frozen=True, slots=True)

@@ -294,8 +294,11 @@ def launcher_args(spec: SweepSpec, key: RunKey, run_id: str, runs_dir: Path, war
 
 
 def limit_mcap(run_dir: Path, limit_mb: float) -> dict[str, Any]:
-    """Delete a run's MCAP beyond ``limit_mb`` (an EMP run logs every uploaded point
-    cloud: ~300 MB at 5 vehicles); the record says so."""
+    """Delete a run's MCAP beyond ``limit_mb`` (an EMP run at 40 vehicles logs every
+    uploaded point cloud: up to ~500 MB); the record says so. The report's load and
+    delivery figures of the run are kept first (``deploy.experiments.load.KEPT``)."""
+    from deploy.experiments import load
+
     mcap = run_dir / "run.mcap"
     try:
         size_mb = mcap.stat().st_size / 1e6
@@ -303,6 +306,10 @@ def limit_mcap(run_dir: Path, limit_mb: float) -> dict[str, Any]:
         return {}
     if size_mb <= limit_mb:
         return {}
+    try:
+        load.keep_summary(mcap, run_dir / load.KEPT)
+    except Exception as exc:  # a torn log: deleted all the same, the report lists it as unread
+        log.warning("%s: load figures not kept: %s", mcap, exc)
     mcap.unlink()
     return {"mcap": None, "mcap_deleted_mb": round(size_mb, 1)}
 

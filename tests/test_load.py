@@ -169,6 +169,27 @@ def test_a_run_whose_mcap_the_sweep_deletes_keeps_its_figures_for_the_report(tmp
     assert report.load_of_runs(tmp_path, None, [record], tmp_path / "cache") == ([], [record])  # stale: not used
 
 
+def test_the_report_reads_a_sweeps_runs_in_parallel_in_record_order(tmp_path, caplog):
+    """Three runs: two logs by hand, the second on a dsrc channel, and a torn one."""
+    from deploy.experiments import report
+
+    def record(run_id: str) -> dict:
+        return {"run_id": run_id, "run_key": run_id, "scheme": "autocast", "vehicles": 3, "status": "judged",
+                "outcome": "safe"}
+
+    for run_id, meta in (("a", META), ("b", {**META, "channel_profile": "dsrc"}), ("torn", META)):
+        (tmp_path / "runs" / run_id).mkdir(parents=True)
+        write(tmp_path / "runs" / run_id / "run.mcap", three_intervals(), meta=meta)
+    torn = tmp_path / "runs" / "torn" / "run.mcap"
+    torn.write_bytes(torn.read_bytes()[: torn.stat().st_size // 2])
+    records = [record("a"), record("torn"), record("b")]
+    got, missing = report.load_of_runs(tmp_path, None, records, tmp_path / "cache")
+    assert [r["run_id"] for r, _ in got] == ["a", "b"] and missing == [records[1]]
+    assert [s["load_median"] for _, s in got] == pytest.approx([0.8, 72 / 75])
+    assert "offered load not read" in caplog.text
+    assert report.load_of_runs(tmp_path, None, records, tmp_path / "cache")[0] == got  # again, from the cache
+
+
 def test_capacity_is_the_profiles_interval(tmp_path):
     assert load.capacity_bytes("lte-direct") == 90_000  # 7.2 Mbps x 10 frames x 10 ms / 8
     assert load.capacity_bytes("dsrc") == 75_000  # 6 Mbps x one 100 ms frame / 8

@@ -31,11 +31,13 @@ import argparse
 import functools
 import json
 import logging
+import os
 import statistics
 import sys
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -373,24 +375,44 @@ def run_load(mcap: Path, cache: Path) -> dict[str, Any]:
     return cached(mcap, cache, load.SUMMARY_VERSION, lambda m: load.load_summary(load.interval_load(m)))
 
 
+def _read_one(read: Callable[[Path, Path], dict[str, Any]], mcap: Path, cache: Path
+              ) -> tuple[dict[str, Any] | None, str | None]:
+    try:
+        return read(mcap, cache), None
+    except Exception as exc:
+        return None, str(exc)
+
+
 def _per_run(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence[dict[str, Any]],
-             wanted: Callable[[dict[str, Any]], bool], read: Callable[[Path, str], dict[str, Any]], what: str
-             ) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
-    """(record, ``read(mcap, run id)``) of every judged run ``wanted`` whose MCAP is here,
-    and the records of those whose MCAP is not or could not be read (a truncated or
-    foreign log: ``what`` is logged as not read and the report goes on without it)."""
-    got, missing = [], []
+             wanted: Callable[[dict[str, Any]], bool], read: Callable[[Path, Path], dict[str, Any]],
+             cache_dir: Path, what: str) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
+    """(record, ``read(mcap, cache_dir / "<run id>.json")``) of every judged run ``wanted``
+    whose MCAP is here, and the records of those whose MCAP is not or could not be read (a
+    truncated or foreign log: ``what`` is logged as not read and the report goes on without
+    it). ``read``, a module-level function, runs in a process per core: a sweep's logs are
+    read once, each on its own, and a cached run is a file read."""
+    found, missing = [], []
     for r in judged(records):
         if not wanted(r):
             continue
         mcap = mcap_of(sweep_dir, plan, r)
         if mcap is None:
             missing.append(r)
-            continue
-        try:
-            got.append((r, read(mcap, r["run_id"])))
-        except Exception as exc:
-            log.warning("%s: %s not read: %s", mcap, what, exc)
+        else:
+            found.append((r, mcap))
+    args = ([read] * len(found), [m for _, m in found], [cache_dir / f"{r['run_id']}.json" for r, _ in found])
+    workers = min(os.cpu_count() or 1, len(found))
+    if workers > 1:
+        with ProcessPoolExecutor(workers) as pool:
+            results = list(pool.map(_read_one, *args, chunksize=max(1, len(found) // (8 * workers))))
+    else:
+        results = [_read_one(*a) for a in zip(*args)]
+    got = []
+    for (r, mcap), (value, error) in zip(found, results):
+        if error is None:
+            got.append((r, value))
+        else:
+            log.warning("%s: %s not read: %s", mcap, what, error)
             missing.append(r)
     return got, missing
 
@@ -401,8 +423,8 @@ def load_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Sequence
     the records of those whose MCAP is not (or could not be read)."""
     from deploy.experiments import load
 
-    got, missing = _per_run(sweep_dir, plan, records, lambda r: r["scheme"] not in NO_CHANNEL,
-                            lambda mcap, run_id: run_load(mcap, cache_dir / f"{run_id}.json"), "offered load")
+    got, missing = _per_run(sweep_dir, plan, records, lambda r: r["scheme"] not in NO_CHANNEL, run_load, cache_dir,
+                            "offered load")
     still = []
     for r in missing:  # an MCAP the sweep deleted for its size: the summary it kept first
         kept = next((s for d in run_dirs(sweep_dir, plan, r) if (s := load.kept_summary(d / load.KEPT))), None)
@@ -504,8 +526,8 @@ def network_of_runs(sweep_dir: Path, plan: dict[str, Any] | None, records: Seque
                     cache_dir: Path) -> tuple[list[tuple[dict[str, Any], dict[str, Any]]], list[dict[str, Any]]]:
     """(record, ``run_network``) of every judged run of a scenario of several domains whose
     MCAP is here, and the records of those whose MCAP is not (or could not be read)."""
-    return _per_run(sweep_dir, plan, records, lambda r: several_domains(r["scenario"]),
-                    lambda mcap, run_id: run_network(mcap, cache_dir / f"{run_id}.json"), "per-domain figures")
+    return _per_run(sweep_dir, plan, records, lambda r: several_domains(r["scenario"]), run_network, cache_dir,
+                    "per-domain figures")
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,8 @@ from world_server.scenarios import ScenarioError, ScenarioParams, build
 from world_server.sim import Simulation
 
 LEFT_TURN_CONFLICT = (-5.25, math.sqrt(9.75**2 - 2.75**2) - 8.0)  # left_turn's (test_scenarios.py); J1 is the origin
-RED_LIGHT_CONFLICT = (-150.0 - 5.25, 5.25)  # J0 (x = -150): the southbound ego's outer lane x = -5.25, the westbound collider's y = +5.25
+# J0 (x = -150): the southbound ego's outer lane x = -5.25, the westbound collider's y = +5.25
+RED_LIGHT_CONFLICT = (-150.0 - 5.25, 5.25)
 
 
 def test_corridor3x_places_two_events_with_their_own_actors_and_conflict_points():

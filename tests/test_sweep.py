@@ -458,7 +458,8 @@ def test_a_nearly_full_disk_starts_no_run_and_the_same_command_resumes(tmp_path)
     res = autocast("sweep", "--preset", "smoke", "--schemes", "single", "--vehicles", "2", "--out", str(out),
                    "--min-free-mb", f"{floor_mb:.0f}")
     assert res.returncode == 4, res.stderr
-    assert f"free where the runs write, under --min-free-mb {floor_mb:.0f}" in res.stderr and "run the same command again" in res.stderr
+    assert f"free where the runs write, under --min-free-mb {floor_mb:.0f}" in res.stderr
+    assert "run the same command again" in res.stderr
     assert not (out / "results.jsonl").exists() and not any((out / "runs").iterdir())
     assert autocast("sweep", "--preset", "smoke", "--out", str(out), "--min-free-mb", "-1").returncode == 2
 

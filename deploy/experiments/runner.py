@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from deploy.experiments.plan import (EXIT_DISK_LOW, EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, RESULTS, STDERR_TAIL_CHARS, RunKey,
-                                      SweepSpec, _duration, append_record, latest, read_results, record_of, sweep_cost_s)
+from deploy.experiments.plan import (EXIT_DISK_LOW, EXIT_INTERRUPTED, EXIT_OK, EXIT_SOME_FAILED, RESULTS,
+                                      STDERR_TAIL_CHARS, RunKey, SweepSpec, _duration, append_record, latest,
+                                      read_results, record_of, sweep_cost_s)
 from processes import factory as process_factory
 from processes.manager import has_argument
 from protocol import shm
